@@ -354,7 +354,12 @@ class Catheter:
         return {"J_1": J_1, "J_2": J_2, "S_1": S_1, "S_2": S_2}
 
     def _segment_end(self, segment: ModalSegment, q_mm: Array, rates: bool):
-        quad = SegmentQuadrature.build(segment, np.array([segment.length_mm]), self.quadrature_order)
+        key = ("segment-end", id(segment))
+        quad = self._plans.get(key)
+        if quad is None:
+            limits = np.array([segment.length_mm])
+            quad = SegmentQuadrature.build(segment, limits, self.quadrature_order)
+            self._plans[key] = quad
         th = segment.coefficients(q_mm) @ quad.psi_nodes.T
         x, z = np.cos(th) @ quad.weights, np.sin(th) @ quad.weights
         dth = segment.coefficient_rates(q_mm) @ quad.psi_nodes.T

@@ -1,0 +1,178 @@
+"""What an estimator consumes per frame, and what it returns.
+
+An :class:`Observation` holds the joint values at the frame's time and the reconstructed
+measurements relative to the catheter base, expressed in {B}, each with its noise covariance
+propagated from the segmentation noise (models.imaging). Missing measurements are ``None``;
+a marker that was not segmented is a row of NaN in ``markers_b_mm``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.bounds import block_diagonal
+
+Array = np.ndarray
+
+
+class Flag(enum.Flag):
+    """What happened in one estimator step."""
+
+    NONE = 0
+    NO_MEASUREMENT = enum.auto()  # nothing usable in the frame: predict only / no estimate
+    UNINFORMATIVE = enum.auto()  # the configuration is near straight: delta_L not observable
+    HELD = enum.auto()  # the estimate was held from before (UKF predict-only)
+    OUTLIER_REJECTED = enum.auto()  # the NIS gate rejected the measurement
+    PARTIAL = enum.auto()  # some markers or one view missing, the rest was used
+    NOT_INITIALISED = enum.auto()  # the UKF has not seen an informative frame yet
+    COVARIANCE_REPAIRED = enum.auto()  # a non-positive-definite covariance was repaired
+    NOT_CONVERGED = enum.auto()  # the least-squares baseline did not report convergence
+
+
+@dataclass(frozen=True)
+class ViewMeasurement:
+    """Points segmented in one view, for updates when the two views are not synchronised.
+
+    Parameters
+    ----------
+    view : models.imaging.OrthographicPlane or PinholeView
+        Anything with ``project(points_w) -> (..., 2)``.
+    R_w_b, o_b_w_mm : arrays (3, 3), (3,)
+        Registered base pose in the world frame.
+    uv : array, shape (n, 2)
+        Segmented image points (mm in the plane, or px).
+    cov : array, shape (n, 2, 2)
+        Their segmentation-noise covariances.
+    point_index : array of int, shape (n,)
+        Which point each row is: -1 for the tip, k >= 0 for the catheter's marker k.
+    """
+
+    view: object
+    R_w_b: Array
+    o_b_w_mm: Array
+    uv: Array
+    cov: Array
+    point_index: Array
+
+
+@dataclass(frozen=True)
+class Observation:
+    """Measurements of one frame relative to the base, in {B}.
+
+    Parameters
+    ----------
+    time_s : float
+        Frame time, s.
+    q : array, shape (3,)
+        Joint values (q_r [rad], q_p [mm], q_d [mm]) interpolated to ``time_s``.
+    q_dot : array, shape (3,), optional
+        Joint rates (rad/s, mm/s, mm/s).
+    tip_b_mm, tip_cov_b : arrays (3,), (3, 3), optional
+        Reconstructed tip relative to the base and its covariance, mm, mm^2.
+    markers_b_mm : array, shape (n, 3), optional
+        Reconstructed backbone markers (the catheter's marker arclengths, in order); NaN rows
+        for markers that were not found.
+    markers_cov_b : array, shape (n, 3, 3) or (3n, 3n), optional
+        Per-marker or joint covariance, mm^2.
+    velocity_b_mm_s, velocity_cov_b : arrays (3,), (3, 3), optional
+        Finite-difference tip velocity and its covariance, mm/s, mm^2/s^2.
+    velocity_tip_cov_b : array, shape (3, 3), optional
+        Cross-covariance cov(velocity noise, tip noise), mm^2/s: a finite difference
+        (p_t - p_{t-1}) / dt is correlated with the p_t it was made from.
+    views : tuple of ViewMeasurement
+        Single-view measurements (used by the UKF when the views are not synchronised).
+    """
+
+    time_s: float
+    q: Array
+    q_dot: Array | None = None
+    tip_b_mm: Array | None = None
+    tip_cov_b: Array | None = None
+    markers_b_mm: Array | None = None
+    markers_cov_b: Array | None = None
+    velocity_b_mm_s: Array | None = None
+    velocity_cov_b: Array | None = None
+    velocity_tip_cov_b: Array | None = None
+    views: tuple[ViewMeasurement, ...] = ()
+
+    def has_tip(self) -> bool:
+        return (
+            self.tip_b_mm is not None
+            and self.tip_cov_b is not None
+            and bool(np.all(np.isfinite(self.tip_b_mm)))
+            and bool(np.all(np.isfinite(self.tip_cov_b)))
+        )
+
+    def has_velocity(self) -> bool:
+        return (
+            self.velocity_b_mm_s is not None
+            and self.velocity_cov_b is not None
+            and self.q_dot is not None
+            and bool(np.all(np.isfinite(self.velocity_b_mm_s)))
+            and bool(np.all(np.isfinite(self.velocity_cov_b)))
+            and bool(np.all(np.isfinite(self.q_dot)))
+        )
+
+    def marker_mask(self) -> Array:
+        """Boolean (n,) of markers present (finite position), empty if there are none."""
+        if self.markers_b_mm is None or self.markers_cov_b is None:
+            return np.zeros(0, dtype=bool)
+        return np.all(np.isfinite(np.asarray(self.markers_b_mm, dtype=float)), axis=-1)
+
+    def markers_joint_covariance(self) -> Array:
+        """The joint (3n, 3n) covariance of all markers, mm^2."""
+        cov = np.asarray(self.markers_cov_b, dtype=float)
+        n = np.asarray(self.markers_b_mm).shape[0]
+        if cov.shape == (n, 3, 3):
+            return block_diagonal(cov)
+        if cov.shape == (3 * n, 3 * n):
+            return cov
+        raise ValueError(
+            f"markers_cov_b must have shape ({n}, 3, 3) or ({3 * n}, {3 * n}), got {cov.shape}"
+        )
+
+
+def velocity_from_positions(
+    tip_now_b: Array, cov_now: Array, tip_before_b: Array, cov_before: Array, dt_s: float
+) -> tuple[Array, Array, Array]:
+    """Finite-difference velocity, its covariance, and its cross-covariance with ``tip_now``.
+
+    v = (p_t - p_{t-1}) / dt; cov(v) = (S_t + S_{t-1}) / dt^2; cov(v, p_t) = S_t / dt.
+    """
+    if not (np.isfinite(dt_s) and dt_s > 0):
+        raise ValueError(f"frame interval must be positive and finite, got {dt_s} s")
+    v = (np.asarray(tip_now_b) - np.asarray(tip_before_b)) / dt_s
+    cov_v = (np.asarray(cov_now) + np.asarray(cov_before)) / dt_s**2
+    return v, cov_v, np.asarray(cov_now) / dt_s
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One estimator step's result.
+
+    ``delta_L_rad`` and ``std_rad`` are finite whenever ``valid``; an invalid step (no
+    measurement and nothing to hold) carries NaN together with a flag saying why.
+    """
+
+    time_s: float
+    delta_L_rad: float
+    std_rad: float
+    q_r_rad: float
+    flags: Flag = Flag.NONE
+    informative_radius_mm: float = 0.0
+    innovation: Array | None = None
+    nis: float | None = None
+    nis_dof: int = 0
+    rejected_outliers: int = 0
+
+    @property
+    def delta_1_rad(self) -> float:
+        """Bending-plane angle q_r + delta_L wrapped to [-pi, pi)."""
+        return float(np.mod(self.q_r_rad + self.delta_L_rad + np.pi, 2 * np.pi) - np.pi)
+
+    @property
+    def valid(self) -> bool:
+        return bool(np.isfinite(self.delta_L_rad) and np.isfinite(self.std_rad))
