@@ -1,0 +1,502 @@
+"""Bi-plane imaging geometry: orthographic planes, pinhole views, reconstruction and noise.
+
+Two view models share one interface (``project``, ``projection_jacobian``):
+
+- :class:`OrthographicPlane`, the paper's model: a plane with unit normal ``n`` in {W}, the
+  projector ``P = I - n n^T`` and the rotation ``R_w_view`` from in-plane coordinates (mm) to {W}.
+- :class:`PinholeView`, a calibrated camera in OpenCV's conventions (camera x right, y down,
+  z along the optical axis; distortion k1, k2, p1, p2, k3), images in px.
+
+:class:`BiplaneRig` pairs a front and a side view of the same kind, reconstructs points (and,
+orthographic only, difference vectors such as tip minus base) and propagates 2-D segmentation
+noise to the 3-D covariance of the reconstruction. World units are mm; arrays are batch-first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+Array = np.ndarray
+
+MIN_PLANE_ANGLE_RAD = np.deg2rad(1.0)
+"""Smallest angle between the two plane normals that still allows reconstruction."""
+MIN_BASELINE_MM = 1.0
+"""Camera centres closer than this are treated as coincident (real rigs: hundreds of mm)."""
+
+_ROTATION_TOL = 1e-6
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)  # px
+
+
+# ---------------------------------------------------------------------------------- checks
+def _checked(x, name: str, shape: tuple[int, ...], batched: bool = True) -> Array:
+    """Float array of shape (..., *shape) (or exactly ``shape``), all finite, or ValueError."""
+    x = np.asarray(x, dtype=float)
+    if x.shape[max(x.ndim - len(shape), 0) :] != shape or (not batched and x.ndim != len(shape)):
+        want = ", ".join(["..."] * batched + [str(n) for n in shape])
+        raise ValueError(f"{name} must have shape ({want}), got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+    return x
+
+
+def _frozen(x: Array) -> Array:
+    x = np.array(x, dtype=float)
+    x.flags.writeable = False
+    return x
+
+
+def _rotation(R, name: str) -> Array:
+    R = _checked(R, name, (3, 3), batched=False)
+    if np.abs(R.T @ R - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(R) < 0.0:
+        raise ValueError(f"{name} must be a rotation matrix (orthonormal, det +1), got\n{R}")
+    return _frozen(R)
+
+
+def _unit(v: Array, name: str) -> Array:
+    norm = np.linalg.norm(v)
+    if norm < 1e-12:
+        raise ValueError(f"{name} must be a non-zero vector, got {v}")
+    return v / norm
+
+
+def _covariance(cov, name: str) -> Array:
+    C = _checked(cov, name, (2, 2))
+    scale = max(np.abs(C).max(initial=0.0), 1e-300)
+    if np.abs(C - np.swapaxes(C, -1, -2)).max(initial=0.0) > 1e-9 * scale:
+        raise ValueError(f"{name} must be symmetric")
+    if C.size and np.linalg.eigvalsh(C).min() < -1e-12 * scale:
+        raise ValueError(
+            f"{name} must be positive semi-definite (a scalar sigma goes through"
+            " isotropic_covariance(sigma))"
+        )
+    return C
+
+
+def isotropic_covariance(sigma, dim: int = 2) -> Array:
+    """Covariance ``sigma**2 * I`` of isotropic noise.
+
+    Parameters
+    ----------
+    sigma : float or array, shape (...)
+        Standard deviation per axis (mm or px), finite and >= 0.
+    dim : int
+        Dimension of the noise.
+
+    Returns
+    -------
+    cov : array, shape (..., dim, dim)
+        Covariance, in the square of the unit of ``sigma``.
+    """
+    s = np.asarray(sigma, dtype=float)
+    if not np.all(np.isfinite(s)) or np.any(s < 0.0):
+        raise ValueError(f"sigma must be finite and >= 0, got {sigma}")
+    if int(dim) != dim or dim < 1:
+        raise ValueError(f"dim must be a positive integer, got {dim}")
+    return s[..., None, None] ** 2 * np.eye(int(dim))
+
+
+# ----------------------------------------------------------------------------------- views
+@dataclass(frozen=True, eq=False)
+class OrthographicPlane:
+    """Orthographic imaging plane (the paper's model).
+
+    Parameters
+    ----------
+    R_w_view : array, shape (3, 3)
+        Rotation from view coordinates to {W}. Its columns are, in {W}, the in-plane axis u
+        (image right), the in-plane axis v (image up) and the normal ``n = u x v``, which points
+        toward the viewer. The in-plane coordinates of a world point x are
+        ``(R_w_view^T x)[:2]``, mm.
+    """
+
+    R_w_view: Array
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R_w_view", _rotation(self.R_w_view, "R_w_view"))
+
+    @classmethod
+    def from_normal(cls, normal_w, in_plane_rotation_rad: float = 0.0) -> OrthographicPlane:
+        """Plane with the given normal and image "up" as close to world z as possible.
+
+        Parameters
+        ----------
+        normal_w : array, shape (3,)
+            Plane normal in {W} (any non-zero length), pointing toward the viewer.
+        in_plane_rotation_rad : float
+            Rotation of the in-plane axes about the normal, rad (u turns toward v).
+
+        Notes
+        -----
+        v is world z projected onto the plane (world y when the normal is within about 26
+        degrees of z, i.e. for views from above or below), then ``u = v x n``.
+        """
+        n = _unit(_checked(normal_w, "normal_w", (3,), batched=False), "normal_w")
+        angle = float(_checked(in_plane_rotation_rad, "in_plane_rotation_rad", (), False))
+        up = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        v = _unit(up - (up @ n) * n, "in-plane up axis")
+        u = np.cross(v, n)
+        c, s = np.cos(angle), np.sin(angle)
+        return cls(np.column_stack([c * u + s * v, c * v - s * u, n]))
+
+    @property
+    def normal_w(self) -> Array:
+        """Unit normal n of the plane in {W}, shape (3,)."""
+        return self.R_w_view[:, 2].copy()
+
+    @property
+    def projector_w(self) -> Array:
+        """Orthogonal projector onto the plane, ``P = I - n n^T``, shape (3, 3)."""
+        n = self.R_w_view[:, 2]
+        return np.eye(3) - np.outer(n, n)
+
+    def project(self, points_w) -> Array:
+        """In-plane coordinates (u, v), mm, shape (..., 2), of points (..., 3) in {W}, mm."""
+        return _checked(points_w, "points_w", (3,)) @ self.R_w_view[:, :2]
+
+    def projection_jacobian(self, points_w) -> Array:
+        """d(u, v)/dx, shape (..., 2, 3), dimensionless (mm/mm), of points (..., 3) in {W}."""
+        x = _checked(points_w, "points_w", (3,))
+        return np.broadcast_to(self.R_w_view[:, :2].T, x.shape[:-1] + (2, 3)).copy()
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeView:
+    """Calibrated pinhole camera in OpenCV's conventions: ``x_cam = R_cam_w @ x_w + t_cam_w``.
+
+    Parameters
+    ----------
+    K : array, shape (3, 3)
+        Intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, px (no skew: OpenCV ignores it).
+    R_cam_w : array, shape (3, 3)
+        Rotation from {W} to the camera frame (x right, y down, z along the optical axis).
+    t_cam_w : array, shape (3,)
+        Origin of {W} in the camera frame, mm.
+    dist : array, shape (5,), optional
+        OpenCV distortion coefficients (k1, k2, p1, p2, k3); None or omitted means zero.
+    image_size : tuple of int
+        (width, height), px.
+    """
+
+    K: Array
+    R_cam_w: Array
+    t_cam_w: Array
+    dist: Array | None = None
+    image_size: tuple[int, int] = (640, 480)
+    _rvec: Array = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        K = _checked(self.K, "K", (3, 3), batched=False)
+        if K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
+            raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
+        if K[0, 1] != 0.0 or np.any(K[2] != (0.0, 0.0, 1.0)) or K[1, 0] != 0.0:
+            raise ValueError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got\n{K}")
+        dist = np.zeros(5) if self.dist is None else _checked(self.dist, "dist", (5,), False)
+        size = tuple(int(n) for n in self.image_size)
+        if len(size) != 2 or min(size) < 1 or size != tuple(self.image_size):
+            raise ValueError(f"image_size must be (width, height) in px, got {self.image_size}")
+        R = _rotation(self.R_cam_w, "R_cam_w")
+        object.__setattr__(self, "K", _frozen(K))
+        object.__setattr__(self, "R_cam_w", R)
+        object.__setattr__(self, "t_cam_w", _frozen(_checked(self.t_cam_w, "t_cam_w", (3,), False)))
+        object.__setattr__(self, "dist", _frozen(dist))
+        object.__setattr__(self, "image_size", size)
+        object.__setattr__(self, "_rvec", cv2.Rodrigues(np.array(R))[0])
+
+    @classmethod
+    def look_at(
+        cls, center_w, target_w, up_w, focal_px: float, image_size=(640, 480), dist=None
+    ) -> PinholeView:
+        """Camera at ``center_w`` looking at ``target_w`` with ``up_w`` pointing up in the image.
+
+        Parameters
+        ----------
+        center_w, target_w : array, shape (3,)
+            Optical centre and a point on the optical axis, in {W}, mm.
+        up_w : array, shape (3,)
+            World direction that appears as image up; must not be parallel to the optical axis.
+        focal_px : float
+            Focal length fx = fy, px; the principal point is the image centre.
+        image_size : tuple of int
+            (width, height), px.
+        dist : array, shape (5,), optional
+            OpenCV distortion coefficients.
+        """
+        c = _checked(center_w, "center_w", (3,), batched=False)
+        forward = _checked(target_w, "target_w", (3,), batched=False) - c
+        if np.linalg.norm(forward) < 1e-9:
+            raise ValueError("center_w and target_w coincide: the viewing direction is undefined")
+        z = forward / np.linalg.norm(forward)
+        up = _checked(up_w, "up_w", (3,), batched=False)
+        down = -(up - (up @ z) * z)
+        if np.linalg.norm(down) <= 1e-9 * max(np.linalg.norm(up), 1e-300):
+            raise ValueError("up_w is zero or parallel to the viewing direction")
+        y = down / np.linalg.norm(down)
+        R_cam_w = np.stack([np.cross(y, z), y, z])
+        f = float(_checked(focal_px, "focal_px", (), False))
+        width, height = image_size
+        K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+        return cls(K, R_cam_w, -R_cam_w @ c, dist, tuple(image_size))
+
+    @property
+    def center_w(self) -> Array:
+        """Optical centre in {W}, mm, shape (3,)."""
+        return -self.R_cam_w.T @ self.t_cam_w
+
+    def _project(self, points_w) -> tuple[Array, Array]:
+        """Pixels (..., 2) and d pixel / d x_cam (..., 2, 3), px/mm."""
+        x = _checked(points_w, "points_w", (3,))
+        depth_mm = x @ self.R_cam_w[2] + self.t_cam_w[2]
+        if np.any(depth_mm <= 0.0):
+            raise ValueError(
+                f"{np.count_nonzero(depth_mm <= 0.0)} point(s) behind the camera (smallest depth"
+                f" {depth_mm.min():.6g} mm); a pinhole view needs depth > 0"
+            )
+        batch = x.shape[:-1]
+        if x.size == 0:
+            return np.zeros(batch + (2,)), np.zeros(batch + (2, 3))
+        pixels, jac = cv2.projectPoints(
+            np.ascontiguousarray(x.reshape(-1, 3)),
+            self._rvec,
+            np.array(self.t_cam_w),
+            np.array(self.K),
+            np.array(self.dist),
+        )
+        # OpenCV's Jacobian columns 3:6 are d pixel / d tvec, which is d pixel / d x_cam.
+        return pixels.reshape(batch + (2,)), jac[:, 3:6].reshape(batch + (2, 3))
+
+    def project(self, points_w) -> Array:
+        """Distorted pixels, shape (..., 2), of points (..., 3) in {W}, mm.
+
+        Raises ValueError if a point is not strictly in front of the camera.
+        """
+        return self._project(points_w)[0]
+
+    def projection_jacobian(self, points_w) -> Array:
+        """d pixel / d x_w, shape (..., 2, 3), px/mm, analytic (distortion included)."""
+        return self._project(points_w)[1] @ self.R_cam_w
+
+    def undistort(self, pixels) -> Array:
+        """Ideal (distortion-free) pixels in the px of K, shape (..., 2), of observed pixels."""
+        p = _checked(pixels, "pixels", (2,))
+        if not np.any(self.dist) or p.size == 0:
+            return p.copy()
+        ideal = cv2.undistortPoints(
+            np.ascontiguousarray(p.reshape(-1, 1, 2)),
+            np.array(self.K),
+            np.array(self.dist),
+            P=np.array(self.K),
+            criteria=_UNDISTORT_CRITERIA,
+        )
+        return ideal.reshape(p.shape)
+
+
+View = OrthographicPlane | PinholeView
+
+
+# ------------------------------------------------------------------------------------- rig
+@dataclass(frozen=True, eq=False)
+class BiplaneRig:
+    """Front and side views of the same kind, and reconstruction from the pair.
+
+    Parameters
+    ----------
+    front, side : OrthographicPlane or PinholeView
+        The two views ({F} and {S}); both orthographic or both pinhole.
+    """
+
+    front: View
+    side: View
+    _M: Array | None = field(init=False, repr=False, default=None)
+
+    def __post_init__(self) -> None:
+        for name, view in (("front", self.front), ("side", self.side)):
+            if not isinstance(view, OrthographicPlane | PinholeView):
+                raise TypeError(f"{name} must be an OrthographicPlane or a PinholeView")
+        if type(self.front) is not type(self.side):
+            raise ValueError(
+                "front and side views must be of the same kind, got"
+                f" {type(self.front).__name__} and {type(self.side).__name__}"
+            )
+        if self.kind == "orthographic":
+            n_f, n_s = self.front.normal_w, self.side.normal_w
+            angle = np.arctan2(np.linalg.norm(np.cross(n_f, n_s)), abs(n_f @ n_s))
+            if angle < MIN_PLANE_ANGLE_RAD:
+                raise ValueError(
+                    f"cannot reconstruct: imaging planes are parallel (normals"
+                    f" {np.degrees(angle):.3g} deg apart, need at least"
+                    f" {np.degrees(MIN_PLANE_ANGLE_RAD):.3g} deg)"
+                )
+            # eq. estDK: [P_f; P_s]^+ = (P_f + P_s)^-1 [P_f, P_s], and P U = U for in-plane axes U.
+            U = np.concatenate([self.front.R_w_view[:, :2], self.side.R_w_view[:, :2]], axis=1)
+            M = np.linalg.solve(self.front.projector_w + self.side.projector_w, U)
+            object.__setattr__(self, "_M", _frozen(M))
+        else:
+            baseline_mm = np.linalg.norm(self.front.center_w - self.side.center_w)
+            if baseline_mm < MIN_BASELINE_MM:
+                raise ValueError(
+                    f"cannot reconstruct: camera centres are {baseline_mm:.3g} mm apart"
+                    f" (coincident, or baseline below {MIN_BASELINE_MM} mm)"
+                )
+
+    @property
+    def kind(self) -> str:
+        """``"orthographic"`` or ``"pinhole"``."""
+        return "orthographic" if isinstance(self.front, OrthographicPlane) else "pinhole"
+
+    def project(self, points_w) -> tuple[Array, Array]:
+        """Images (front, side), each (..., 2) in mm or px, of points (..., 3) in {W}, mm."""
+        return self.front.project(points_w), self.side.project(points_w)
+
+    def reconstruction_matrix(self) -> Array:
+        """The linear map ``[u_f, v_f, u_s, v_s] -> x`` of eq. estDK, shape (3, 4).
+
+        It is ``[P_f; P_s]^+ blockdiag(R_w_f[:, :2], R_w_s[:, :2])``; because it is linear it
+        applies to difference vectors too. Orthographic rigs only.
+        """
+        if self._M is None:
+            raise ValueError(
+                "reconstruction_matrix is only defined for orthographic rigs: pinhole"
+                " reconstruction is not linear (use reconstruction_covariance for noise)"
+            )
+        return np.array(self._M)
+
+    def reconstruct(self, uv_front, uv_side) -> Array:
+        """Points in {W} from their images in the two views.
+
+        Parameters
+        ----------
+        uv_front, uv_side : array, shape (..., 2)
+            Image points, mm in the plane (orthographic) or distorted px (pinhole); their
+            batch shapes broadcast.
+
+        Returns
+        -------
+        points_w : array, shape (..., 3)
+            Reconstructed points in {W}, mm. Orthographic: eq. estDK,
+            ``x = [P_f; P_s]^+ [R_w_f (u_f, v_f, 0); R_w_s (u_s, v_s, 0)]``, which also maps
+            difference vectors (tip minus base). Pinhole: undistortion, then linear
+            triangulation (the least-squares solution of the four DLT equations in x).
+        """
+        uv_f = _checked(uv_front, "uv_front", (2,))
+        uv_s = _checked(uv_side, "uv_side", (2,))
+        try:
+            batch = np.broadcast_shapes(uv_f.shape[:-1], uv_s.shape[:-1])
+        except ValueError:
+            raise ValueError(
+                f"uv_front {uv_f.shape} and uv_side {uv_s.shape} batch shapes do not broadcast"
+            ) from None
+        uv_f, uv_s = np.broadcast_to(uv_f, batch + (2,)), np.broadcast_to(uv_s, batch + (2,))
+        if self._M is not None:
+            return np.concatenate([uv_f, uv_s], axis=-1) @ self._M.T
+        rows, rhs = [], []
+        for view, uv in ((self.front, uv_f), (self.side, uv_s)):
+            m = (view.undistort(uv) - view.K[:2, 2]) / np.diag(view.K)[:2]  # normalised coords
+            R, t = view.R_cam_w, view.t_cam_w
+            # x_cam[:2] = m x_cam[2] is linear in x: (m r_3 - r_12) x = t_12 - m t_3.
+            rows.append(m[..., :, None] * R[2] - R[:2])
+            rhs.append(t[:2] - m * t[2])
+        A, b = np.concatenate(rows, axis=-2), np.concatenate(rhs, axis=-1)
+        U, s, Vt = np.linalg.svd(A, full_matrices=False)
+        parallel = s[..., -1] <= 1e-12 * s[..., 0]
+        if np.any(parallel):
+            raise ValueError(
+                f"cannot triangulate {np.count_nonzero(parallel)} point(s): their viewing rays"
+                " are parallel (a point on the line through the two camera centres?)"
+            )
+        y = np.einsum("...ji,...j->...i", U, b) / s
+        return np.einsum("...ji,...j->...i", Vt, y)
+
+    def _lateral_model(self, view: View, points_w: Array, cov: Array) -> tuple[Array, Array]:
+        """First-order model ``e = A dx`` of the residual that ``reconstruct`` minimises.
+
+        For a plane e is the in-plane error, mm (A = U^T). For a camera the linear
+        triangulation minimises ``Z (m - x_cam[:2] / Z)``: the offset in the fronto-parallel
+        plane at the point's depth, mm, which is ``L^-1 dp`` for a pixel error dp, where L is
+        the lateral block ``d pixel / d x_cam[:2]`` of the projection Jacobian. Returns A
+        (..., 2, 3) and the covariance of e (..., 2, 2), mm^2.
+        """
+        if isinstance(view, OrthographicPlane):
+            return view.projection_jacobian(points_w), cov
+        J_cam = view._project(points_w)[1]
+        L = J_cam[..., :2]
+        A = np.linalg.solve(L, J_cam) @ view.R_cam_w
+        L_inv_cov = np.linalg.solve(L, cov)
+        return A, np.linalg.solve(L, np.swapaxes(L_inv_cov, -1, -2))
+
+    def reconstruction_covariance(self, points_w, cov_front, cov_side) -> Array:
+        """3-D covariance of reconstructed points from the 2-D noise of each view.
+
+        Parameters
+        ----------
+        points_w : array, shape (..., 3)
+            Points in {W} (true or reconstructed), mm.
+        cov_front, cov_side : array, shape (2, 2) or (..., 2, 2)
+            Segmentation-noise covariances in each image, mm^2 (orthographic) or px^2
+            (pinhole); see :func:`isotropic_covariance` for a scalar sigma. Independent between
+            the views; may be singular.
+
+        Returns
+        -------
+        cov_w : array, shape (..., 3, 3)
+            Covariance of ``reconstruct``'s output, mm^2, symmetric.
+
+        Notes
+        -----
+        Both reconstructions are, to first order, the unweighted least-squares solution of
+        ``A_f dx = e_f, A_s dx = e_s`` (see ``_lateral_model``), so
+        ``Sigma = H^-1 (sum_v A_v^T C_v A_v) H^-1`` with ``H = sum_v A_v^T A_v``. For planes
+        this is exact and equals ``M blockdiag(C_f, C_s) M^T`` with M the
+        :meth:`reconstruction_matrix`. For cameras it is first order in the noise; it equals
+        ``(J^T W J)^-1`` (J the stacked pixel Jacobians, W the inverse noise covariance, i.e.
+        the bound of the optimal estimator) only when the noise is the same in both views in
+        the sense of the lateral error, and is never smaller.
+        """
+        x = _checked(points_w, "points_w", (3,))
+        H = np.zeros(x.shape[:-1] + (3, 3))
+        N = np.zeros(())
+        views = ((self.front, cov_front, "cov_front"), (self.side, cov_side, "cov_side"))
+        for view, cov, name in views:
+            A, C = self._lateral_model(view, x, _covariance(cov, name))
+            A_T = np.swapaxes(A, -1, -2)
+            H = H + A_T @ A
+            N = N + A_T @ C @ A
+        H_inv_N = np.linalg.solve(H, N)
+        cov_w = np.linalg.solve(H, np.swapaxes(H_inv_N, -1, -2))
+        return 0.5 * (cov_w + np.swapaxes(cov_w, -1, -2))
+
+
+# -------------------------------------------------------------------------------- defaults
+def default_orthographic_rig() -> BiplaneRig:
+    """Front (AP) plane with normal -y and side (lateral) plane with normal +x; v = world z.
+
+    The normals point toward the viewers of :func:`default_pinhole_rig`, so both default rigs
+    show the same images up to scale and the flip of v (image rows grow downward).
+    Front: u = world x; side: u = world y.
+    """
+    return BiplaneRig(
+        OrthographicPlane.from_normal([0.0, -1.0, 0.0]),
+        OrthographicPlane.from_normal([1.0, 0.0, 0.0]),
+    )
+
+
+def default_pinhole_rig(distance_mm: float = 400.0, focal_px: float = 1000.0) -> BiplaneRig:
+    """Two undistorted 640x480 cameras aimed at the origin from -y (front) and +x (side).
+
+    Parameters
+    ----------
+    distance_mm : float
+        Distance of each optical centre from the world origin, mm.
+    focal_px : float
+        Focal length of both cameras, px. Image up is world z.
+    """
+    d = float(_checked(distance_mm, "distance_mm", (), False))
+    if d <= 0.0:
+        raise ValueError(f"distance_mm must be positive, got {distance_mm}")
+    origin, up = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    return BiplaneRig(
+        PinholeView.look_at([0.0, -d, 0.0], origin, up, focal_px),
+        PinholeView.look_at([d, 0.0, 0.0], origin, up, focal_px),
+    )
