@@ -9,21 +9,38 @@ vectors ``c`` of the tip and of every marker and ``u`` of the tip velocity; ever
 then only rotates fixed vectors about one axis.
 
 Joint vectors are ``q = (q_r [rad], q_p [mm], q_d [mm])`` with shape (..., 3); every
-function is vectorised over the leading batch axes.
+function is vectorised over the leading batch axes, and ``delta_L`` broadcasts against the
+batch shape of ``q``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
-from models.modal import ModalSegment, PowerBasis, SegmentQuadrature
+from models.modal import Basis, ModalSegment, PowerBasis, SegmentQuadrature
 from models.rotations import rot_y, rot_z, rotate_z, skew
 
 Array = np.ndarray
 
-DEFAULT_QUADRATURE_ORDER = 16
+# Gauss-Legendre nodes per piece of every integral. Measured against order 40 for the default
+# model on an 81 x 81 grid of q_p, q_d in [-1, 1] mm, delta_2 = 0 and pi/2: the tip (one piece
+# per segment, the worst case) is off by at most 3e-14 mm and the tip twist by 8e-14 mm/s at
+# order 10 (round-off, as at orders 12 and 16), 8e-14 mm and 1e-12 mm/s at order 8,
+# 2e-11 mm and 2e-10 mm/s at order 7. With twice the default bending (A's q terms doubled,
+# up to 4.1 rad at L1) order 10 stays at 9e-14 mm where order 8 reaches 4e-10 mm. So order 10
+# keeps a margin of over 1e7 to the 1e-6 mm reference tolerance, at 10/16 of the
+# trigonometry of order 16.
+DEFAULT_QUADRATURE_ORDER = 10
+
+# Configurations per block in Catheter._shape times the nodes per configuration: blocks of
+# 4096 configurations of the tip (20 nodes) keep each temporary near 640 kB, in cache.
+_BLOCK_NODE_VALUES = 81_920
+
+_NON_FINITE = "{} contains non-finite values (NaN or inf)"
 
 
 def check_joints(q: Array, name: str = "q") -> Array:
@@ -34,15 +51,66 @@ def check_joints(q: Array, name: str = "q") -> Array:
             f"{name} must have shape (..., 3) = (q_r [rad], q_p [mm], q_d [mm]), got {q.shape}"
         )
     if not np.all(np.isfinite(q)):
-        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+        raise ValueError(_NON_FINITE.format(name))
     return q
 
 
 def _check_finite(x: Array, name: str) -> Array:
     x = np.asarray(x, dtype=float)
     if not np.all(np.isfinite(x)):
-        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+        raise ValueError(_NON_FINITE.format(name))
     return x
+
+
+def _joint_floats(q: Array, name: str) -> list[float]:
+    """One configuration, shape (3,), as Python floats, or a ValueError if not finite."""
+    values = q.tolist()
+    if not all(map(math.isfinite, values)):
+        raise ValueError(_NON_FINITE.format(name))
+    return values
+
+
+def _batch_shape(q: Array, **shapes: tuple[int, ...]) -> tuple[int, ...]:
+    """Broadcast the batch shape of q with the named batch shapes, or a ValueError naming them.
+
+    Parameters
+    ----------
+    q : array, shape (..., 3)
+        Checked joint values.
+    **shapes : tuple of int
+        Batch shapes of the other arguments, e.g. ``delta_L=delta_L.shape``.
+    """
+    batch, against = q.shape[:-1], "q"
+    for name, shape in shapes.items():
+        try:
+            batch = np.broadcast_shapes(batch, shape)
+        except ValueError:
+            raise ValueError(
+                f"{name} has batch shape {shape}, which does not broadcast against the batch"
+                f" shape {batch} of {against}"
+            ) from None
+        against += f" and {name}"
+    return batch
+
+
+def _joint_basis_rows(basis: Basis, q_mm: float) -> tuple[list[float], list[float]]:
+    """eta(q) and d eta / dq for one joint value as Python floats (single-configuration path)."""
+    if type(basis) is PowerBasis:
+        # The same products in the same order as PowerBasis.values: both paths agree exactly.
+        values = [1.0]
+        for _ in range(basis.size - 1):
+            values.append(values[-1] * q_mm)
+        return values, [0.0] + [k * values[k - 1] for k in range(1, basis.size)]
+    x = np.array(q_mm)
+    return basis.values(x).tolist(), basis.derivatives(x).tolist()
+
+
+def _block_diag(a: Array, b: Array) -> Array:
+    """The block-diagonal matrix [[a, 0], [0, b]]."""
+    out = np.zeros((a.shape[0] + b.shape[0], a.shape[1] + b.shape[1]), dtype=np.result_type(a, b))
+    out[: a.shape[0], : a.shape[1]] = a
+    out[a.shape[0] :, a.shape[1] :] = b
+    return out
 
 
 @dataclass(frozen=True)
@@ -69,25 +137,63 @@ class ShapeVectors:
     u_tip_mm_s: Array | None = None  # (..., 3), present when joint rates were given
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class _Plan:
-    """Quadrature for a fixed set of arclengths, split over the two segments."""
+    """Quadrature of both segments for a fixed tuple of arclengths, as a few matrices.
 
-    quad_1: SegmentQuadrature
-    quad_2: SegmentQuadrature
-    in_proximal: Array  # (n,) bool, arclength <= L1
-    index: Array  # (n,) column of each arclength in its segment's integrals
+    With the stacked joint basis ``eta = [eta_1(q_p), eta_2(q_d)]`` the tangent angles at the
+    nodes of both segments are ``eta @ G_nodes``. ``G_nodes`` is block diagonal, so the stacked
+    derivatives ``[eta_1'(q_p), eta_2'(q_d)] @ G_nodes`` are dtheta_1/dq_p on segment 1's
+    nodes and dtheta_2/dq_d on segment 2's. ``cos(theta) @ weights`` and
+    ``sin(theta) @ weights`` are then the in-plane coordinates (x, z) of p_1 and p_2 at every
+    integral limit (columns: segment 1's limits, then segment 2's).
+
+    Arclength k uses p_1 at column ``column_1[k]`` (p_1(L1) for a distal point) and p_2 at
+    column ``column_2[k]`` (the zero limit for a proximal point), so that the single formula
+    ``c = p_1 + Ry(pi/2 - theta_1(L1)) Rz(delta_2) p_2`` serves every point without masks.
+    """
+
+    G_nodes: Array  # (n_eta_1 + n_eta_2, n_nodes)
+    G_ends: Array  # (n_eta_1 + n_eta_2, 2): theta_1(L1), theta_2(L2)
+    weights: Array  # (n_nodes, n_columns), mm
+    column_1: Array  # (n_points,) int
+    column_2: Array  # (n_points,) int
+    end_1: int  # column of p_1(L1)
+    end_2: int  # column of p_2(L2)
+
+    # The single-configuration path's matrices are built on first use: most plans (backbone
+    # calls) never need them, and the expanded weights are four times the size of weights.
+    @cached_property
+    def G_single(self) -> Array:
+        """theta at the nodes and at L1, shape (n_eta_1 + n_eta_2, n_nodes + 1)."""
+        G = np.concatenate([self.G_nodes, self.G_ends[:, :1]], axis=1)
+        G.setflags(write=False)
+        return G
+
+    @cached_property
+    def weights_single(self) -> Array:
+        """Weights for the (cos, sin) float pairs of exp(i theta) at the G_single nodes.
+
+        One more column copies the L1 node, and kron(., I_2) acts on interleaved pairs, so the
+        product returns the (x, z) pairs of every limit and then (cos, sin)(theta_1(L1)).
+        Shape (2 (n_nodes + 1), 2 (n_columns + 1)).
+        """
+        W = np.kron(_block_diag(self.weights, np.ones((1, 1))), np.eye(2))
+        W.setflags(write=False)
+        return W
+
+    @cached_property
+    def point_columns(self) -> tuple[tuple[int, int], ...]:
+        """(column_1[k], column_2[k]) for every arclength, as Python ints."""
+        return tuple(zip(self.column_1.tolist(), self.column_2.tolist(), strict=True))
 
 
-def _axis_y_batch(shape: tuple[int, ...]) -> Array:
-    out = np.zeros(shape + (3,))
-    out[..., 1] = 1.0
-    return out
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Catheter:
     """Two-segment catheter: proximal segment (driven by q_p), distal segment (by q_d).
+
+    Equality and hashing are by identity (``eq=False``): the segments hold arrays, and the
+    field-wise comparison of a frozen dataclass would raise on them.
 
     Parameters
     ----------
@@ -99,7 +205,7 @@ class Catheter:
         Arclengths of the backbone markers used by the Body Positions estimator, mm from the
         base of the proximal segment, each in (0, L1 + L2].
     quadrature_order : int
-        Gauss-Legendre nodes per integral.
+        Gauss-Legendre nodes per piece of every integral.
     """
 
     proximal: ModalSegment
@@ -123,7 +229,7 @@ class Catheter:
                     f"marker arclength {s} mm is outside the catheter (0, {self.length_mm}] mm"
                 )
         object.__setattr__(self, "marker_arclengths_mm", markers)
-        # The tip is always the last column of the marker plan.
+        # The tip is always the last point of the marker plan.
         self._plan(markers + (self.length_mm,))
 
     @property
@@ -133,23 +239,40 @@ class Catheter:
 
     # ------------------------------------------------------------------ plans and shapes
     def _plan(self, arclengths: tuple[float, ...]) -> _Plan:
+        """The (cached) quadrature plan for points at these arclengths, mm, in [0, L1 + L2]."""
         plan = self._plans.get(arclengths)
         if plan is not None:
             return plan
         s = np.asarray(arclengths, dtype=float)
-        L1 = self.proximal.length_mm
-        in_proximal = s <= L1
-        limits_1 = np.append(s[in_proximal], L1)
-        limits_2 = np.append(s[~in_proximal] - L1, self.distal.length_mm)
-        index = np.empty(s.size, dtype=int)
-        index[in_proximal] = np.arange(in_proximal.sum())
-        index[~in_proximal] = np.arange((~in_proximal).sum())
+        L1, L2 = self.proximal.length_mm, self.distal.length_mm
+        distal = s > L1
+        s_1 = np.where(distal, L1, s)
+        s_2 = np.where(distal, s - L1, 0.0)
+        # (L1 + L2) - L1 need not equal L2 in floating point: snap, so that the tip shares the
+        # nodes of p_2(L2) instead of adding a piece one ulp long.
+        s_2[np.abs(s_2 - L2) <= 4 * np.finfo(float).eps * self.length_mm] = L2
+        limits_1 = np.unique(np.append(s_1, L1))
+        limits_2 = np.unique(np.concatenate([s_2, [0.0, L2]]))
+        quad_1 = SegmentQuadrature.build(self.proximal, limits_1, self.quadrature_order)
+        quad_2 = SegmentQuadrature.build(self.distal, limits_2, self.quadrature_order)
+        A_1, A_2 = self.proximal.A, self.distal.A
+        # theta(s_n, q) = psi(s_n)^T A eta(q) = eta(q)^T (A^T psi(s_n)).
+        G_nodes = _block_diag(A_1.T @ quad_1.psi_nodes.T, A_2.T @ quad_2.psi_nodes.T)
+        G_ends = _block_diag(A_1.T @ quad_1.psi_end[:, None], A_2.T @ quad_2.psi_end[:, None])
+        weights = _block_diag(quad_1.weights, quad_2.weights)
+        column_1 = np.searchsorted(limits_1, s_1)
+        column_2 = limits_1.size + np.searchsorted(limits_2, s_2)
         plan = _Plan(
-            quad_1=SegmentQuadrature.build(self.proximal, limits_1, self.quadrature_order),
-            quad_2=SegmentQuadrature.build(self.distal, limits_2, self.quadrature_order),
-            in_proximal=in_proximal,
-            index=index,
+            G_nodes=G_nodes,
+            G_ends=G_ends,
+            weights=weights,
+            column_1=column_1,
+            column_2=column_2,
+            end_1=limits_1.size - 1,
+            end_2=weights.shape[1] - 1,
         )
+        for array in (G_nodes, G_ends, weights, column_1, column_2):
+            array.setflags(write=False)
         if len(self._plans) < 64:
             self._plans[arclengths] = plan
         return plan
@@ -164,70 +287,140 @@ class Catheter:
         return s
 
     def _shape(self, plan: _Plan, q_p: Array, q_d: Array, rates: bool) -> dict[str, Array]:
-        """Shape vectors c(s) at delta_1 = 0 for the plan's arclengths (last column: segment end).
+        """Shape vectors c(s) at delta_1 = 0 for the plan's arclengths, batch shape of q_p.
 
-        Returns c (..., n, 3) and, with rates, dc/dq_p and dc/dq_d (..., n, 3), with the tip
-        angles theta_1(L1), theta_2(L2) and their derivatives.
+        Returns a dict with ``c`` (..., n, 3); the segment ends ``c_end_1`` = p_1(L1) and
+        ``p_2`` = p_2(L2) (..., 3), each in its own segment's bending plane; the tip angles
+        ``theta_1`` = theta_1(L1), ``theta_2`` = theta_2(L2) (...). With ``rates`` also
+        ``dc_dq_p``, ``dc_dq_d`` (..., n, 3), ``dc_end_1_dq_p``, ``dp_2_dq_d`` (..., 3) and
+        ``dtheta_1``, ``dtheta_2`` (...). The segment ends serve :meth:`frames` and
+        :meth:`segment_jacobians` without integrating again.
         """
-        seg1, seg2 = self.proximal, self.distal
-        q1, q2 = plan.quad_1, plan.quad_2
-        a1, a2 = seg1.coefficients(q_p), seg2.coefficients(q_d)
-        th1 = a1 @ q1.psi_nodes.T
-        th2 = a2 @ q2.psi_nodes.T
-        cos1, sin1, cos2, sin2 = np.cos(th1), np.sin(th1), np.cos(th2), np.sin(th2)
-        x1, z1 = cos1 @ q1.weights, sin1 @ q1.weights
-        x2, z2 = cos2 @ q2.weights, sin2 @ q2.weights
-        th1_end = a1 @ q1.psi_end
-        th2_end = a2 @ q2.psi_end
-        c1, s1 = np.cos(th1_end)[..., None], np.sin(th1_end)[..., None]
+        batch = q_p.shape
+        q_p, q_d = q_p.ravel(), q_d.ravel()
+        # Blocks of configurations keep the (block, n_nodes) temporaries in cache; one pass
+        # over 100,000 configurations was measured twice as slow, mostly in memory traffic.
+        step = max(1, _BLOCK_NODE_VALUES // plan.G_nodes.shape[1])
+        if q_p.size <= step:
+            out = self._shape_block(plan, q_p, q_d, rates)
+        else:
+            blocks = [
+                self._shape_block(plan, q_p[i : i + step], q_d[i : i + step], rates)
+                for i in range(0, q_p.size, step)
+            ]
+            out = {key: np.concatenate([b[key] for b in blocks]) for key in blocks[0]}
+        return {key: value.reshape(batch + value.shape[1:]) for key, value in out.items()}
+
+    def _shape_block(self, plan: _Plan, q_p: Array, q_d: Array, rates: bool) -> dict[str, Array]:
+        """:meth:`_shape` for joint values of shape (n,): the same dict with batch shape (n,)."""
+        eta = np.concatenate([self.proximal.eta.values(q_p), self.distal.eta.values(q_d)], -1)
+        theta = eta @ plan.G_nodes
+        theta_end = eta @ plan.G_ends
+        cos, sin = np.cos(theta), np.sin(theta)
+        x, z = cos @ plan.weights, sin @ plan.weights
+        # Trailing axis of length 1 so that the end rotation broadcasts over the points.
+        c1, s1 = np.cos(theta_end[..., :1]), np.sin(theta_end[..., :1])
         cd2, sd2 = np.cos(self.delta_2_rad), np.sin(self.delta_2_rad)
-        # Distal points: p_1(L1) + Ry(pi/2 - theta_1(L1)) Rz(delta_2) p_2(s - L1).
-        X1, Z1 = x1[..., -1:], z1[..., -1:]
-        c_dist = np.stack(
-            [X1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2 + 0.0 * X1, Z1 - c1 * cd2 * x2 + s1 * z2], -1
+        x1, z1 = x[..., plan.column_1], z[..., plan.column_1]
+        x2, z2 = x[..., plan.column_2], z[..., plan.column_2]
+        # Paper eq. DKfull at delta_1 = 0: c = p_1 + Ry(pi/2 - theta_1(L1)) Rz(delta_2) p_2.
+        c = np.stack(
+            [x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2], axis=-1
         )
-        c_prox = np.stack([x1, np.zeros_like(x1), z1], -1)
-        n = plan.in_proximal.size
-        c = np.empty(c_prox.shape[:-2] + (n, 3))
-        c[..., plan.in_proximal, :] = c_prox[..., plan.index[plan.in_proximal], :]
-        c[..., ~plan.in_proximal, :] = c_dist[..., plan.index[~plan.in_proximal], :]
-        out = {"c": c, "c_end_1": c_prox[..., -1, :], "c_end_2": c_dist[..., -1, :]}
-        out.update(theta_1=th1_end, theta_2=th2_end)
+        zero = np.zeros_like(x[..., 0])
+        out = {
+            "c": c,
+            "c_end_1": np.stack([x[..., plan.end_1], zero, z[..., plan.end_1]], -1),
+            "p_2": np.stack([x[..., plan.end_2], zero, z[..., plan.end_2]], -1),
+            "theta_1": theta_end[..., 0],
+            "theta_2": theta_end[..., 1],
+        }
         if not rates:
             return out
-        b1, b2 = seg1.coefficient_rates(q_p), seg2.coefficient_rates(q_d)
-        dth1 = b1 @ q1.psi_nodes.T
-        dth2 = b2 @ q2.psi_nodes.T
-        dx1, dz1 = (-sin1 * dth1) @ q1.weights, (cos1 * dth1) @ q1.weights
-        dx2, dz2 = (-sin2 * dth2) @ q2.weights, (cos2 * dth2) @ q2.weights
-        dth1_end = (b1 @ q1.psi_end)[..., None]
-        dX1, dZ1 = dx1[..., -1:], dz1[..., -1:]
-        zero2 = np.zeros_like(x2)
-        dc_dist_p = np.stack(
-            [
-                dX1 + (c1 * cd2 * x2 - s1 * z2) * dth1_end,
-                zero2,
-                dZ1 + (s1 * cd2 * x2 + c1 * z2) * dth1_end,
-            ],
-            -1,
+        eta_rate = np.concatenate(
+            [self.proximal.eta.derivatives(q_p), self.distal.eta.derivatives(q_d)], -1
         )
-        dc_dist_d = np.stack(
-            [s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2], -1
-        )
-        dc_prox_p = np.stack([dx1, np.zeros_like(dx1), dz1], -1)
-        dc_p = np.empty_like(c)
-        dc_d = np.zeros_like(c)
-        dc_p[..., plan.in_proximal, :] = dc_prox_p[..., plan.index[plan.in_proximal], :]
-        dc_p[..., ~plan.in_proximal, :] = dc_dist_p[..., plan.index[~plan.in_proximal], :]
-        dc_d[..., ~plan.in_proximal, :] = dc_dist_d[..., plan.index[~plan.in_proximal], :]
+        dtheta = eta_rate @ plan.G_nodes
+        dtheta_end = eta_rate @ plan.G_ends
+        # Columns of segment 1 are derivatives by q_p, those of segment 2 by q_d.
+        dx, dz = (-sin * dtheta) @ plan.weights, (cos * dtheta) @ plan.weights
+        dth1 = dtheta_end[..., :1]
+        dx1, dz1 = dx[..., plan.column_1], dz[..., plan.column_1]
+        dx2, dz2 = dx[..., plan.column_2], dz[..., plan.column_2]
         out.update(
-            dc_dq_p=dc_p,
-            dc_dq_d=dc_d,
-            dc_end_1_dq_p=dc_prox_p[..., -1, :],
-            dtheta_1=b1 @ q1.psi_end,
-            dtheta_2=b2 @ q2.psi_end,
+            dc_dq_p=np.stack(
+                [
+                    dx1 + (c1 * cd2 * x2 - s1 * z2) * dth1,
+                    np.zeros_like(dx1),
+                    dz1 + (s1 * cd2 * x2 + c1 * z2) * dth1,
+                ],
+                axis=-1,
+            ),
+            dc_dq_d=np.stack(
+                [s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2], axis=-1
+            ),
+            dc_end_1_dq_p=np.stack([dx[..., plan.end_1], zero, dz[..., plan.end_1]], -1),
+            dp_2_dq_d=np.stack([dx[..., plan.end_2], zero, dz[..., plan.end_2]], -1),
+            dtheta_1=dtheta_end[..., 0],
+            dtheta_2=dtheta_end[..., 1],
         )
         return out
+
+    def _shape_vectors_single(
+        self, plan: _Plan, q: Array, joints: list[float], joint_rates: list[float] | None
+    ) -> ShapeVectors:
+        """:meth:`shape_vectors` for one configuration with a fixed, small number of numpy calls.
+
+        The tracker calls it once per frame, where the dozens of numpy calls of the batched
+        path on arrays of a few elements cost far more than the arithmetic. The integrals
+        come from one product, ``exp(i theta) @ weights = x + i z``, and the few vectors are
+        assembled from Python floats.
+        """
+        _, q_p, q_d = joints
+        eta_p, deta_p = _joint_basis_rows(self.proximal.eta, q_p)
+        eta_d, deta_d = _joint_basis_rows(self.distal.eta, q_d)
+        if joint_rates is None:
+            e = np.exp(1j * (np.array(eta_p + eta_d) @ plan.G_single))
+        else:
+            # Rows i theta and i dtheta/dq at every node (and at L1) become exp(i theta) and
+            # its derivative i dtheta/dq exp(i theta).
+            e = 1j * (np.array([eta_p + eta_d, deta_p + deta_d]) @ plan.G_single)
+            np.exp(e[0], out=e[0])
+            e[1] *= e[0]
+        # The complex values viewed as (cos, sin) float pairs keep the product real: a
+        # complex BLAS product (zgemm) was measured to slow every later np.exp ten times.
+        integrals = (e.view(float) @ plan.weights_single).view(complex).tolist()
+        if joint_rates is None:
+            integrals = [integrals]
+        p = integrals[0]  # x + i z of p_1 and p_2 at every limit; last: exp(i theta_1(L1))
+        c1, s1 = p[-1].real, p[-1].imag
+        cd2, sd2 = math.cos(self.delta_2_rad), math.sin(self.delta_2_rad)
+        points = []
+        for j1, j2 in plan.point_columns:
+            x1, z1, x2, z2 = p[j1].real, p[j1].imag, p[j2].real, p[j2].imag
+            # Paper eq. DKfull at delta_1 = 0, as in _shape.
+            points.append((x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2))
+        c = np.array(points)
+        u = None
+        if joint_rates is not None:
+            dp = integrals[1]  # d/dq_p on segment 1's columns, d/dq_d on segment 2's
+            dc1, ds1 = dp[-1].real, dp[-1].imag  # d(cos, sin)(theta_1(L1)) / dq_p
+            j1, j2 = plan.point_columns[-1]
+            x2, z2 = p[j2].real, p[j2].imag
+            dx1, dz1, dx2, dz2 = dp[j1].real, dp[j1].imag, dp[j2].real, dp[j2].imag
+            dc_p = (dx1 + ds1 * cd2 * x2 + dc1 * z2, 0.0, dz1 - dc1 * cd2 * x2 + ds1 * z2)
+            dc_d = (s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2)
+            r_dot, p_dot, d_dot = joint_rates
+            c_x, c_y, _ = points[-1]
+            # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot z x c + dc/dq_p q_p_dot + dc/dq_d q_d_dot]
+            u = np.array(
+                [
+                    -r_dot * c_y + dc_p[0] * p_dot + dc_d[0] * d_dot,
+                    r_dot * c_x + dc_p[1] * p_dot + dc_d[1] * d_dot,
+                    dc_p[2] * p_dot + dc_d[2] * d_dot,
+                ]
+            )
+        return ShapeVectors(q_r_rad=q[0], c_tip_mm=c[-1], c_markers_mm=c[:-1], u_tip_mm_s=u)
 
     # ------------------------------------------------------------------ public API
     def shape_vectors(self, q: Array, q_dot: Array | None = None) -> ShapeVectors:
@@ -238,15 +431,30 @@ class Catheter:
         q : array, shape (..., 3)
             Joint values (q_r [rad], q_p [mm], q_d [mm]).
         q_dot : array, shape (..., 3), optional
-            Joint rates (rad/s, mm/s, mm/s); when given, ``u_tip_mm_s`` is filled.
+            Joint rates (rad/s, mm/s, mm/s), broadcasting against q; when given,
+            ``u_tip_mm_s`` is filled.
+
+        Returns
+        -------
+        ShapeVectors
+            With batch shape (...) of q (of q and q_dot broadcast for ``u_tip_mm_s``).
         """
+        q = np.asarray(q, dtype=float)
+        if q_dot is not None:
+            q_dot = np.asarray(q_dot, dtype=float)
+        plan = self._plan(self.marker_arclengths_mm + (self.length_mm,))
+        if q.shape == (3,) and (q_dot is None or q_dot.shape == (3,)):
+            joints = _joint_floats(q, "q")
+            rates = None if q_dot is None else _joint_floats(q_dot, "q_dot")
+            return self._shape_vectors_single(plan, q, joints, rates)
         q = check_joints(q)
-        markers = self.marker_arclengths_mm + (self.length_mm,)
-        shape = self._shape(self._plan(markers), q[..., 1], q[..., 2], rates=q_dot is not None)
+        if q_dot is not None:
+            q_dot = check_joints(q_dot, "q_dot")
+            _batch_shape(q, q_dot=q_dot.shape[:-1])
+        shape = self._shape(plan, q[..., 1], q[..., 2], rates=q_dot is not None)
         c = shape["c"]
         u = None
         if q_dot is not None:
-            q_dot = check_joints(q_dot, "q_dot")
             c_tip = c[..., -1, :]
             # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot z x c + dc/dq_p q_p_dot + dc/dq_d q_d_dot]
             u = (
@@ -259,9 +467,10 @@ class Catheter:
         )
 
     def tip(self, q: Array, delta_L: Array | float = 0.0) -> Array:
-        """Tip position o_4_b, mm, shape (..., 3)."""
+        """Tip position o_4_b, mm, shape (..., 3) with q's batch shape broadcast with delta_L's."""
         q = check_joints(q)
         delta_L = _check_finite(delta_L, "delta_L")
+        _batch_shape(q, delta_L=delta_L.shape)
         shape = self._shape(self._plan((self.length_mm,)), q[..., 1], q[..., 2], rates=False)
         return rotate_z(shape["c"][..., -1, :], q[..., 0] + delta_L)
 
@@ -281,12 +490,12 @@ class Catheter:
         """
         q = check_joints(q)
         delta_L = _check_finite(delta_L, "delta_L")
+        _batch_shape(q, delta_L=delta_L.shape)
         s = self._check_arclengths(arclength_mm)
         scalar = s.ndim == 0
         s = np.atleast_1d(s)
         if s.ndim != 1:
             raise ValueError(f"arclength_mm must be a scalar or 1-D, got shape {s.shape}")
-        # Points at s = 0 are the base origin; give them a tiny positive limit for quadrature.
         shape = self._shape(self._plan(tuple(s.tolist())), q[..., 1], q[..., 2], rates=False)
         points = rotate_z(shape["c"], (q[..., 0] + delta_L)[..., None])
         return points[..., 0, :] if scalar else points
@@ -295,6 +504,7 @@ class Catheter:
         """Frames {2} and {4} in {B} (paper eqs. dk1, DKfull)."""
         q = check_joints(q)
         delta_L = _check_finite(delta_L, "delta_L")
+        _batch_shape(q, delta_L=delta_L.shape)
         delta_1 = q[..., 0] + delta_L
         shape = self._shape(self._plan((self.length_mm,)), q[..., 1], q[..., 2], rates=False)
         R_b_2 = rot_z(delta_1) @ rot_y(np.pi / 2 - shape["theta_1"])
@@ -313,35 +523,27 @@ class Catheter:
         ``J_1`` (..., 6, 2): twist of frame {2} in {B} per (q_p_dot, q_r_dot);
         ``J_2`` (..., 6, 2): twist of frame {4} relative to {2}, in {2}, per (q_d_dot,
         delta_2_dot); ``S_1``, ``S_2`` (..., 6, 6): the adjoints that move them to the tip in {B}.
-        Twists are [v (mm/s); w (rad/s)].
+        Twists are [v (mm/s); w (rad/s)]; the batch shape (...) is q's broadcast with delta_L's.
         """
         q = check_joints(q)
         delta_L = _check_finite(delta_L, "delta_L")
-        batch = q.shape[:-1]
+        batch = _batch_shape(q, delta_L=delta_L.shape)
         delta_1 = q[..., 0] + delta_L
-        plan = self._plan((self.length_mm,))
-        shape = self._shape(plan, q[..., 1], q[..., 2], rates=True)
-        Rz1 = rot_z(delta_1)
-        R_b_2 = Rz1 @ rot_y(np.pi / 2 - shape["theta_1"])
-        Rzd2 = rot_z(np.broadcast_to(self.delta_2_rad, batch))
-        o_2_b = rotate_z(shape["c_end_1"], delta_1)
-        e_y = _axis_y_batch(batch)
-        e_z = np.zeros(batch + (3,))
-        e_z[..., 2] = 1.0
+        shape = self._shape(self._plan((self.length_mm,)), q[..., 1], q[..., 2], rates=True)
+        R_b_2 = rot_z(delta_1) @ rot_y(np.pi / 2 - shape["theta_1"])
+        Rzd2 = rot_z(self.delta_2_rad)
+        e_y, e_z = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
         # Segment 1 in {B}: d(o_2_b)/dq_p and the rotation about y_1 by -dtheta_1/dq_p.
         J_1 = np.zeros(batch + (6, 2))
         J_1[..., :3, 0] = rotate_z(shape["dc_end_1_dq_p"], delta_1)
-        J_1[..., 3:, 0] = (Rz1 @ e_y[..., None])[..., 0] * -shape["dtheta_1"][..., None]
-        J_1[..., :3, 1] = np.cross(e_z, o_2_b)
+        J_1[..., 3:, 0] = rotate_z(e_y, delta_1) * -shape["dtheta_1"][..., None]
+        J_1[..., :3, 1] = np.cross(e_z, rotate_z(shape["c_end_1"], delta_1))
         J_1[..., 3:, 1] = e_z
         # Segment 2 in {2}: p_2 at delta_2, tip angle rate, and rotation about z_2.
-        x2, z2 = self._segment_end(self.distal, q[..., 2], rates=True)
-        p2 = np.stack([x2[0], np.zeros_like(x2[0]), z2[0]], -1)
-        dp2 = np.stack([x2[1], np.zeros_like(x2[1]), z2[1]], -1)
-        o_4_2 = (Rzd2 @ p2[..., None])[..., 0]
+        o_4_2 = shape["p_2"] @ Rzd2.T
         J_2 = np.zeros(batch + (6, 2))
-        J_2[..., :3, 0] = (Rzd2 @ dp2[..., None])[..., 0]
-        J_2[..., 3:, 0] = (Rzd2 @ e_y[..., None])[..., 0] * -shape["dtheta_2"][..., None]
+        J_2[..., :3, 0] = shape["dp_2_dq_d"] @ Rzd2.T
+        J_2[..., 3:, 0] = (Rzd2 @ e_y) * -shape["dtheta_2"][..., None]
         J_2[..., :3, 1] = np.cross(e_z, o_4_2)
         J_2[..., 3:, 1] = e_z
         S_1 = np.zeros(batch + (6, 6))
@@ -353,26 +555,16 @@ class Catheter:
         S_2[..., 3:, 3:] = R_b_2
         return {"J_1": J_1, "J_2": J_2, "S_1": S_1, "S_2": S_2}
 
-    def _segment_end(self, segment: ModalSegment, q_mm: Array, rates: bool):
-        key = ("segment-end", id(segment))
-        quad = self._plans.get(key)
-        if quad is None:
-            limits = np.array([segment.length_mm])
-            quad = SegmentQuadrature.build(segment, limits, self.quadrature_order)
-            self._plans[key] = quad
-        th = segment.coefficients(q_mm) @ quad.psi_nodes.T
-        x, z = np.cos(th) @ quad.weights, np.sin(th) @ quad.weights
-        dth = segment.coefficient_rates(q_mm) @ quad.psi_nodes.T
-        dx, dz = (-np.sin(th) * dth) @ quad.weights, (np.cos(th) * dth) @ quad.weights
-        return (x[..., 0], dx[..., 0]), (z[..., 0], dz[..., 0])
-
     def tip_twist(self, q: Array, q_dot: Array, delta_L: Array | float = 0.0) -> Array:
         """Tip twist [v (mm/s); w (rad/s)] of frame {4} in {B} for joint rates q_dot.
 
         xi = [S_1 J_1 | S_2 J_2] [q_p_dot, q_r_dot, q_d_dot, 0]^T (paper eq. IKfinal), with
-        delta_L held constant.
+        delta_L held constant. The batch shapes of q, delta_L and q_dot broadcast.
         """
+        q = check_joints(q)
         q_dot = check_joints(q_dot, "q_dot")
+        delta_L = _check_finite(delta_L, "delta_L")
+        _batch_shape(q, delta_L=delta_L.shape, q_dot=q_dot.shape[:-1])
         jac = self.segment_jacobians(q, delta_L)
         rates_1 = np.stack([q_dot[..., 1], q_dot[..., 0]], -1)[..., None]
         rates_2 = np.stack([q_dot[..., 2], np.zeros_like(q_dot[..., 2])], -1)[..., None]

@@ -40,16 +40,23 @@ class PowerBasis:
 
     def values(self, x: Array) -> Array:
         x = np.asarray(x, dtype=float)
-        return x[..., None] ** np.arange(self.size)
+        out = np.empty(x.shape + (self.size,))
+        out[..., 0] = 1.0
+        # Cumulative products, not x ** k: general pow is about 40x slower on large batches.
+        for k in range(1, self.size):
+            np.multiply(out[..., k - 1], x, out=out[..., k])
+        return out
 
     def derivatives(self, x: Array) -> Array:
-        x = np.asarray(x, dtype=float)
-        k = np.arange(self.size)
-        # x**(k-1) at k = 0 would be 0**-1; the k factor zeroes that term anyway.
-        return k * x[..., None] ** np.maximum(k - 1, 0)
+        powers = self.values(x)
+        out = np.zeros_like(powers)
+        out[..., 1:] = powers[..., :-1] * np.arange(1, self.size)
+        return out
 
 
-@dataclass(frozen=True)
+# eq=False: equality and hashing by identity; the generated field-wise versions fail on the
+# ndarray field A (`==` raises "truth value of an array is ambiguous", hash raises TypeError).
+@dataclass(frozen=True, eq=False)
 class ModalSegment:
     """One bending segment of the catheter.
 
@@ -102,26 +109,57 @@ def gauss_legendre_unit(order: int) -> tuple[Array, Array]:
     return 0.5 * (x + 1.0), 0.5 * w
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SegmentQuadrature:
     """Precomputed quadrature of int_0^{s_j} [cos theta, sin theta] ds for fixed upper limits.
 
-    For upper limits ``s_j`` (mm) the nodes of every interval are stacked, so one matrix product
-    per configuration gives theta at all nodes and one more the integrals for every limit.
+    The distinct positive limits cut [0, max s_j] into pieces, each integrated with its own
+    Gauss-Legendre rule; the integral up to s_j is the sum over the pieces below it. Repeated
+    limits therefore share their nodes (the tip and the last marker are often the same
+    arclength), and a limit of 0 gives a zero column. With theta at the stacked nodes,
+    ``cos(theta) @ weights`` gives the integrals for every limit in one product.
+
+    Attributes
+    ----------
+    psi_nodes : array, shape (n_nodes, psi.size)
+        psi at the normalised nodes s_n / L (``order`` nodes per piece).
+    weights : array, shape (n_nodes, n_limits)
+        Node weights in mm; column j is zero for the nodes above limit j.
+    psi_end : array, shape (psi.size,)
+        psi at s = L.
     """
 
-    psi_nodes: Array  # (n_nodes_total, psi.size), psi at the normalised nodes
-    weights: Array  # (n_nodes_total, n_limits), node weights in mm, zero outside the interval
-    psi_end: Array  # (psi.size,), psi at s = L
+    psi_nodes: Array
+    weights: Array
+    psi_end: Array
 
     @classmethod
     def build(cls, segment: ModalSegment, limits_mm: Array, order: int) -> SegmentQuadrature:
+        """Quadrature of ``segment`` for upper limits ``limits_mm`` (mm, each >= 0).
+
+        Parameters
+        ----------
+        segment : ModalSegment
+            The segment whose psi basis is evaluated at the nodes.
+        limits_mm : float or array, shape (n_limits,)
+            Upper integration limits, mm; repeats and zeros are allowed.
+        order : int
+            Gauss-Legendre nodes per piece.
+        """
         limits = np.atleast_1d(np.asarray(limits_mm, dtype=float))
+        if limits.ndim != 1 or not np.all(np.isfinite(limits)) or np.any(limits < 0.0):
+            raise ValueError(f"quadrature limits must be finite, >= 0 and 1-D, got {limits}")
+        boundaries = np.concatenate([[0.0], np.unique(limits[limits > 0.0])])
+        starts, ends = boundaries[:-1], boundaries[1:]
         unit_x, unit_w = gauss_legendre_unit(order)
-        nodes = (limits[:, None] * unit_x[None, :]).ravel()
-        weights = np.zeros((limits.size * order, limits.size))
-        for j, s in enumerate(limits):
-            weights[j * order : (j + 1) * order, j] = s * unit_w
+        piece = (ends - starts)[:, None]
+        nodes = (starts[:, None] + piece * unit_x).ravel()
+        node_weights = (piece * unit_w).ravel()
+        # Limit j covers piece k when the piece ends at or below it.
+        covers = np.repeat(ends[:, None] <= limits[None, :], order, axis=0)
+        weights = node_weights[:, None] * covers
         psi_nodes = segment.psi.values(nodes / segment.length_mm)
         psi_end = segment.psi.values(np.array(1.0))
+        for array in (psi_nodes, weights, psi_end):
+            array.setflags(write=False)
         return cls(psi_nodes=psi_nodes, weights=weights, psi_end=psi_end)

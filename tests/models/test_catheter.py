@@ -341,6 +341,103 @@ def test_delta_L_broadcasts(delta_2):
     np.testing.assert_allclose(grid[2, 4], catheter.tip(q[4], delta_L[2]), atol=1e-12)
 
 
+@DELTA_2
+@pytest.mark.parametrize("markers", [(), (4.0, 13.0, 20.5, 29.0)], ids=["default", "four"])
+@pytest.mark.parametrize("with_rates", [True, False], ids=["q_dot", "no q_dot"])
+def test_single_configuration_path_matches_the_batched_path(delta_2, markers, with_rates):
+    # q of shape (3,) takes a separate fast path; a (1, 3) batch takes the batched one.
+    catheter = default_catheter(delta_2_rad=delta_2, marker_arclengths_mm=markers)
+    q, q_dot, _ = _random_configurations(np.random.default_rng(18), 20)
+    for q_i, q_dot_i in zip(q, q_dot, strict=True):
+        rates = q_dot_i if with_rates else None
+        single = catheter.shape_vectors(q_i, rates)
+        batched = catheter.shape_vectors(q_i[None], None if rates is None else rates[None])
+        assert single.q_r_rad.shape == ()
+        assert single.q_r_rad == q_i[0]
+        np.testing.assert_allclose(single.c_tip_mm, batched.c_tip_mm[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(single.c_markers_mm, batched.c_markers_mm[0], rtol=0, atol=1e-12)
+        if with_rates:
+            np.testing.assert_allclose(single.u_tip_mm_s, batched.u_tip_mm_s[0], rtol=0, atol=1e-12)
+        else:
+            assert single.u_tip_mm_s is None
+
+
+@DELTA_2
+def test_delta_L_broadcasts_beyond_the_batch_of_q_for_every_method(delta_2):
+    catheter = default_catheter(delta_2_rad=delta_2)
+    q, q_dot, delta_L = _random_configurations(np.random.default_rng(19), 5)
+    grid = delta_L[:4, None]  # (4, 1) against q's (5,): all 20 pairs
+    s = np.array([4.0, 13.0, 25.0])
+    calls = {
+        "tip": lambda qq, dd, dL: catheter.tip(qq, dL),
+        "backbone": lambda qq, dd, dL: catheter.backbone(qq, dL, s),
+        "tip_twist": lambda qq, dd, dL: catheter.tip_twist(qq, dd, dL),
+        "frames.R_b_4": lambda qq, dd, dL: catheter.frames(qq, dL).R_b_4,
+        "J_1": lambda qq, dd, dL: catheter.segment_jacobians(qq, dL)["J_1"],
+        "J_2": lambda qq, dd, dL: catheter.segment_jacobians(qq, dL)["J_2"],
+        "S_1": lambda qq, dd, dL: catheter.segment_jacobians(qq, dL)["S_1"],
+        "S_2": lambda qq, dd, dL: catheter.segment_jacobians(qq, dL)["S_2"],
+    }
+    for key, call in calls.items():
+        value = call(q, q_dot, grid)
+        single_shape = call(q[0], q_dot[0], float(grid[0, 0])).shape
+        assert value.shape == (4, 5) + single_shape, key
+        for i in range(4):
+            for j in range(5):
+                np.testing.assert_allclose(
+                    value[i, j], call(q[j], q_dot[j], float(grid[i, 0])), atol=1e-12, err_msg=key
+                )
+    # One configuration against many delta_L, for the methods that did not broadcast before.
+    np.testing.assert_allclose(
+        catheter.tip_twist(q[0], q_dot[0], delta_L),
+        np.stack([catheter.tip_twist(q[0], q_dot[0], d) for d in delta_L]),
+        atol=1e-12,
+    )
+    jac = catheter.segment_jacobians(q[0], delta_L)
+    assert {k: v.shape for k, v in jac.items()} == {
+        "J_1": (5, 6, 2),
+        "J_2": (5, 6, 2),
+        "S_1": (5, 6, 6),
+        "S_2": (5, 6, 6),
+    }
+
+
+@DELTA_2
+def test_repeated_and_unsorted_arclengths_give_the_same_points(delta_2):
+    catheter = default_catheter(delta_2_rad=delta_2)
+    q, _, delta_L = _random_configurations(np.random.default_rng(20), 4)
+    s = np.array([29.0, 13.0, 29.0, 0.0, 6.0, 13.0, 20.0])
+    points = catheter.backbone(q, delta_L, s)
+    for k, s_k in enumerate(s):
+        np.testing.assert_allclose(points[:, k], catheter.backbone(q, delta_L, s_k), atol=1e-12)
+    np.testing.assert_allclose(points[:, 3], 0.0, atol=0)
+    np.testing.assert_allclose(points[:, 0], catheter.tip(q, delta_L), atol=1e-12)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 6])
+def test_power_basis_values_and_derivatives(size):
+    x = np.random.default_rng(21).uniform(-2.0, 2.0, (4, 5))
+    basis = PowerBasis(size)
+    k = np.arange(size)
+    np.testing.assert_allclose(basis.values(x), x[..., None] ** k, rtol=1e-15, atol=0)
+    expected = k * x[..., None] ** np.maximum(k - 1, 0)
+    np.testing.assert_allclose(basis.derivatives(x), expected, rtol=1e-15, atol=0)
+    assert basis.values(0.5).shape == (size,)
+
+
+def test_models_compare_and_hash_by_identity():
+    # Field-wise == on the array fields would raise; identity semantics make models usable as
+    # dict keys and in sets.
+    catheter = default_catheter()
+    copy = dataclasses.replace(catheter)
+    assert catheter == catheter
+    assert catheter != copy
+    assert catheter.proximal == catheter.proximal
+    assert catheter.proximal != dataclasses.replace(catheter.proximal)
+    assert len({catheter, copy, catheter}) == 2
+    assert len({catheter.proximal, catheter.distal}) == 2
+
+
 # ---------------------------------------------------------------------------- bad input
 def _call(method: str, **kwargs):
     catheter = default_catheter(delta_2_rad=kwargs.pop("delta_2"))
@@ -402,6 +499,21 @@ def test_bad_joint_rates_raise(delta_2, method, q_dot, message):
 def test_non_finite_delta_L_raises(delta_2, method):
     with pytest.raises(ValueError, match="delta_L contains non-finite"):
         _call(method, delta_2=delta_2, delta_L=np.nan)
+
+
+@DELTA_2
+@pytest.mark.parametrize("method", DELTA_L_METHODS)
+def test_delta_L_that_does_not_broadcast_raises(delta_2, method):
+    q = np.zeros((6, 3))
+    with pytest.raises(ValueError, match=r"delta_L has batch shape \(4,\), which does not"):
+        _call(method, delta_2=delta_2, q=q, q_dot=q, delta_L=np.zeros(4))
+
+
+@DELTA_2
+@pytest.mark.parametrize("method", RATE_METHODS)
+def test_joint_rates_that_do_not_broadcast_raise(delta_2, method):
+    with pytest.raises(ValueError, match=r"q_dot has batch shape \(4,\), which does not"):
+        _call(method, delta_2=delta_2, q=np.zeros((6, 3)), q_dot=np.zeros((4, 3)))
 
 
 @DELTA_2
