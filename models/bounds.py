@@ -89,15 +89,16 @@ def crb_tip(catheter: Catheter, q: Array, delta_L: Array | float, cov_b: Array) 
 
 
 def crb_markers(catheter: Catheter, q: Array, delta_L: Array | float, cov_b: Array) -> Array:
-    """Bound from all backbone markers of the catheter (Body Positions), rad.
+    """Bound from the tip and every backbone marker of the catheter (Body Positions), rad.
 
-    ``cov_b`` is (3,3) for identical independent markers, (..., n, 3, 3) per marker, or the
-    joint (..., 3n, 3n) covariance (markers relative to a noisy base are correlated).
+    ``cov_b`` covers the n = 1 + n_markers points in the order (tip, marker_0, ...): (3, 3)
+    for identical independent points, (..., n, 3, 3) per point, or the joint (..., 3n, 3n)
+    covariance (points measured relative to a noisy base are correlated).
     """
     shape = catheter.shape_vectors(q)
-    n = shape.c_markers_mm.shape[-2]
-    W = information_from_covariance(_joint_covariance(cov_b, n))
-    info = rotation_fisher_information(shape.c_markers_mm, W, shape.q_r_rad + delta_L)
+    c = np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
+    W = information_from_covariance(_joint_covariance(cov_b, c.shape[-2]))
+    info = rotation_fisher_information(c, W, shape.q_r_rad + delta_L)
     return _std_from_information(info)
 
 

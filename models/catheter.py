@@ -202,8 +202,10 @@ class Catheter:
     delta_2_rad : float
         Fixed angle of the distal bending plane about z_2.
     marker_arclengths_mm : tuple of float
-        Arclengths of the backbone markers used by the Body Positions estimator, mm from the
-        base of the proximal segment, each in (0, L1 + L2].
+        Arclengths of the backbone markers that Body Positions uses together with the tip,
+        mm from the base of the proximal segment, each in (0, L1 + L2). The tip is always
+        measured on its own, so a marker at the tip would count the same point twice.
+        Default: one marker at frame {2} (s = L1).
     quadrature_order : int
         Gauss-Legendre nodes per piece of every integral.
     """
@@ -222,11 +224,12 @@ class Catheter:
             raise ValueError(f"quadrature_order must be >= 2, got {self.quadrature_order}")
         markers = tuple(float(s) for s in self.marker_arclengths_mm)
         if not markers:
-            markers = (self.proximal.length_mm, self.length_mm)
+            markers = (self.proximal.length_mm,)
         for s in markers:
-            if not (0.0 < s <= self.length_mm):
+            if not (0.0 < s < self.length_mm):
                 raise ValueError(
-                    f"marker arclength {s} mm is outside the catheter (0, {self.length_mm}] mm"
+                    f"marker arclength {s} mm is outside the catheter body (0, {self.length_mm})"
+                    " mm (the tip is always measured on its own)"
                 )
         object.__setattr__(self, "marker_arclengths_mm", markers)
         # The tip is always the last point of the marker plan.

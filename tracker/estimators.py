@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 
 from models.bounds import information_from_covariance
@@ -68,22 +69,31 @@ def build_problem(
         cov = np.asarray(observation.tip_cov_b, dtype=float)
         partial = False
     elif kind == "body":
+        # Body Positions: the tip and every segmented backbone marker.
         mask = observation.marker_mask()
-        if mask.size and mask.size != shape.c_markers_mm.shape[0]:
+        n_markers = shape.c_markers_mm.shape[0]
+        if mask.size and mask.size != n_markers:
             raise ValueError(
-                f"observation has {mask.size} markers, the catheter model has "
-                f"{shape.c_markers_mm.shape[0]}"
+                f"observation has {mask.size} markers, the catheter model has {n_markers}"
             )
-        if not mask.any():
+        has_tip = observation.has_tip()
+        if not mask.any() and not has_tip:
             return None
-        joint = observation.markers_joint_covariance()
-        idx = np.repeat(mask, 3)
-        y = np.asarray(observation.markers_b_mm, dtype=float)[mask]
-        c = shape.c_markers_mm[mask]
-        cov = joint[np.ix_(idx, idx)]
+        ys, cs, blocks = [], [], []
+        if has_tip:
+            ys.append(np.asarray(observation.tip_b_mm, dtype=float)[None, :])
+            cs.append(shape.c_tip_mm[None, :])
+            blocks.append(np.asarray(observation.tip_cov_b, dtype=float))
+        if mask.any():
+            idx = np.repeat(mask, 3)
+            ys.append(np.asarray(observation.markers_b_mm, dtype=float)[mask])
+            cs.append(shape.c_markers_mm[mask])
+            blocks.append(observation.markers_joint_covariance()[np.ix_(idx, idx)])
+        y, c = np.concatenate(ys), np.concatenate(cs)
+        cov = block_diag(*blocks)
         if not np.all(np.isfinite(cov)):
             return None
-        partial = not mask.all()
+        partial = not (has_tip and mask.size and mask.all())
     elif kind == "velocity":
         if not observation.has_velocity() or shape.u_tip_mm_s is None:
             return None
@@ -178,6 +188,8 @@ class PerFrameEstimator:
         if self.kind == "body":
             mask = observation.marker_mask()
             s = np.asarray(cat.marker_arclengths_mm)[mask]
+            if observation.has_tip():
+                s = np.concatenate([[cat.length_mm], s])
             return lambda d: (y - cat.backbone(q, d[0], s)).ravel()
         q_dot = np.asarray(observation.q_dot, dtype=float)
         return lambda d: y[0] - cat.tip_twist(q, q_dot, d[0])[:3]

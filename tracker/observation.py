@@ -81,7 +81,10 @@ class Observation:
         Finite-difference tip velocity and its covariance, mm/s, mm^2/s^2.
     velocity_tip_cov_b : array, shape (3, 3), optional
         Cross-covariance cov(velocity noise, tip noise), mm^2/s: a finite difference
-        (p_t - p_{t-1}) / dt is correlated with the p_t it was made from.
+        (p_t - p_{t-1}) / dt is correlated with the p_t it was made from. It also repeats the
+        noise of p_{t-1}: a filter that already fused p_{t-1} would count it twice, which is
+        why the UKF fuses such a velocity only after a frame whose tip it did not use
+        (``UKFSettings.velocity_is_finite_difference``).
     views : tuple of ViewMeasurement
         Single-view measurements (used by the UKF when the views are not synchronised).
     """

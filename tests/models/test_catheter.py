@@ -142,7 +142,7 @@ def test_segment_jacobians_match_finite_differences(delta_2):
 
 @DELTA_2
 def test_shape_vectors_rotate_into_tip_markers_and_tip_velocity(delta_2):
-    catheter = default_catheter(delta_2_rad=delta_2, marker_arclengths_mm=(4.0, 13.0, 20.5, 29.0))
+    catheter = default_catheter(delta_2_rad=delta_2, marker_arclengths_mm=(4.0, 13.0, 20.5, 28.0))
     q, q_dot, delta_L = _random_configurations(np.random.default_rng(14), 25)
     vectors = catheter.shape_vectors(q, q_dot)
     Rz = rot_z(q[:, 0] + delta_L)
@@ -162,14 +162,14 @@ def test_shape_vectors_rotate_into_tip_markers_and_tip_velocity(delta_2):
 
 
 @DELTA_2
-def test_default_markers_are_the_segment_ends(delta_2):
+def test_default_marker_is_frame_2(delta_2):
     catheter = default_catheter(delta_2_rad=delta_2)
-    assert catheter.marker_arclengths_mm == (13.0, 29.0)
+    assert catheter.marker_arclengths_mm == (13.0,)
     q, _, delta_L = _random_configurations(np.random.default_rng(15), 5)
     frames = catheter.frames(q, delta_L)
     points = catheter.backbone(q, delta_L, catheter.marker_arclengths_mm)
     np.testing.assert_allclose(points[:, 0], frames.o_2_b, atol=1e-12)
-    np.testing.assert_allclose(points[:, 1], frames.o_4_b, atol=1e-12)
+    np.testing.assert_allclose(catheter.tip(q, delta_L), frames.o_4_b, atol=1e-12)
 
 
 # ---------------------------------------------------------------------------- closed forms
@@ -293,7 +293,7 @@ def test_single_configuration_shapes(delta_2):
         "backbone_scalar": (3,),
         "tip_twist": (6,),
         "c_tip": (3,),
-        "c_markers": (2, 3),
+        "c_markers": (1, 3),
         "u_tip": (3,),
         "q_r": (),
         "frames.R_b_2": (3, 3),
@@ -342,7 +342,7 @@ def test_delta_L_broadcasts(delta_2):
 
 
 @DELTA_2
-@pytest.mark.parametrize("markers", [(), (4.0, 13.0, 20.5, 29.0)], ids=["default", "four"])
+@pytest.mark.parametrize("markers", [(), (4.0, 13.0, 20.5, 28.0)], ids=["default", "four"])
 @pytest.mark.parametrize("with_rates", [True, False], ids=["q_dot", "no q_dot"])
 def test_single_configuration_path_matches_the_batched_path(delta_2, markers, with_rates):
     # q of shape (3,) takes a separate fast path; a (1, 3) batch takes the batched one.
@@ -554,7 +554,7 @@ def test_bad_modal_matrix_raises(A, message):
 
 
 @DELTA_2
-@pytest.mark.parametrize("marker_mm", [0.0, -1.0, 29.5, np.nan], ids=["0", "-1", "29.5", "NaN"])
+@pytest.mark.parametrize("marker_mm", [0.0, -1.0, 29.0, 29.5, np.nan], ids=["0", "-1", "tip", "29.5", "NaN"])
 def test_marker_outside_the_catheter_raises(delta_2, marker_mm):
     with pytest.raises(ValueError, match="marker arclength .* is outside the catheter"):
         default_catheter(delta_2_rad=delta_2, marker_arclengths_mm=(5.0, marker_mm))

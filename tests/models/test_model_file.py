@@ -20,7 +20,7 @@ def test_default_file_equals_default_model():
 def test_file_settings_are_used(tmp_path):
     path = tmp_path / "model.toml"
     text = TEMPLATE.replace("delta_2_rad = 0.0", "delta_2_rad = 1.5707963267948966")
-    text = text.replace("marker_arclengths_mm = [13.0, 29.0]", "marker_arclengths_mm = [6.5, 21.0]")
+    text = text.replace("marker_arclengths_mm = [13.0]", "marker_arclengths_mm = [6.5, 21.0]")
     path.write_text(text)
     loaded = load_catheter(path)
     q = np.array([0.2, 0.7, -0.4])
@@ -38,7 +38,8 @@ def test_file_settings_are_used(tmp_path):
         (lambda t: t.replace("version = 1", "version = 7"), "unsupported model version 7"),
         (lambda t: t.replace('psi = { basis = "power", size = 3 }', "", 1), "missing key 'psi'"),
         (lambda t: t.replace('"power", size = 3 }', '"chebyshev", size = 3 }', 1), "unknown basis"),
-        (lambda t: t.replace("[13.0, 29.0]", "[13.0, 40.0]"), "outside the catheter"),
+        (lambda t: t.replace("[13.0]", "[13.0, 40.0]"), "outside the catheter"),
+        (lambda t: t.replace("[13.0]", "[13.0, 29.0]"), "tip is always measured on its own"),
         (lambda t: t.replace("[distal]", "[distal"), "malformed TOML"),
         (lambda t: t.replace("-2.2", '"nan"'), r"\[proximal\]"),
     ],

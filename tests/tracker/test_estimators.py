@@ -42,6 +42,7 @@ def cost(kind, catheter, obs, delta_L):
         r = obs.tip_b_mm - catheter.tip(obs.q, delta_L)
     elif kind == "body-positions":
         r = obs.markers_b_mm - catheter.backbone(obs.q, delta_L, catheter.marker_arclengths_mm)
+        r = np.concatenate([r.ravel(), obs.tip_b_mm - catheter.tip(obs.q, delta_L)])
     else:
         r = obs.velocity_b_mm_s - catheter.tip_twist(obs.q, obs.q_dot, delta_L)[:3]
     return float(np.sum(r**2))
@@ -204,7 +205,8 @@ def test_missing_data_is_flagged_not_silent():
         assert Flag.NO_MEASUREMENT in est.flags
     markers = catheter.backbone(q, 0.3, catheter.marker_arclengths_mm)
     markers[0] = np.nan
-    obs = Observation(0.0, q, markers_b_mm=markers, markers_cov_b=np.stack([np.eye(3)] * 2))
+    obs = Observation(0.0, q, tip_b_mm=catheter.tip(q, 0.3), tip_cov_b=np.eye(3),
+                      markers_b_mm=markers, markers_cov_b=np.stack([np.eye(3)]))
     est = make_estimator("body-positions", catheter).step(obs)
     assert est.valid and Flag.PARTIAL in est.flags
     assert abs(wrap_angle(est.delta_L_rad - 0.3)) < 1e-9

@@ -1,0 +1,596 @@
+"""The bending-plane UKF: efficiency against the Cramer-Rao bound, consistency, robustness.
+
+Measurement noise is simulated directly in {B} as Gaussian with covariance
+``sigma^2 diag(1, 1, 0.5)`` (a reconstruction from two views is less noisy along z_b). All
+Monte Carlo tests use fixed seeds and trial counts, so they are deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from models.bounds import crb_markers
+from models.catheter import default_catheter
+from models.imaging import default_orthographic_rig, default_pinhole_rig
+from models.rotations import rot_y, rot_z, rotate_z, wrap_angle
+from tracker.estimators import make_estimator
+from tracker.observation import Flag, Observation, ViewMeasurement
+from tracker.ukf import BendingPlaneUKF, UKFSettings, gate_threshold, sigma_sqrt, spd_inverse
+
+DELTA_2 = [0.0, np.pi / 2]
+BENT = np.array([0.3, 0.8, 0.6])
+NOISE_SHAPE = np.diag([1.0, 1.0, 0.5])
+DT_S = 0.05
+
+
+def noise_cov(sigma_mm: float) -> np.ndarray:
+    return sigma_mm**2 * NOISE_SHAPE
+
+
+def simulate(
+    catheter,
+    qs,
+    deltas,
+    rng,
+    sigma_mm=1.0,
+    q_dots=None,
+    markers=True,
+    velocity=False,
+    t0_s=0.0,
+):
+    """Observations of a trajectory: tip, markers and finite-difference velocity in {B}.
+
+    The velocity of frame k is (tip_k - tip_{k-1}) / dt of the *measured* tips, with its
+    covariance (S + S) / dt^2 and its cross-covariance S / dt with tip_k; frame 0 has none.
+    """
+    qs = np.atleast_2d(qs)
+    n = qs.shape[0]
+    deltas = np.broadcast_to(deltas, (n,))
+    cov = noise_cov(sigma_mm)
+    shape = catheter.shape_vectors(qs)
+    angle = qs[:, 0] + deltas
+    tips = rotate_z(shape.c_tip_mm, angle) + rng.multivariate_normal(np.zeros(3), cov, size=n)
+    n_markers = shape.c_markers_mm.shape[1]
+    marker_noise = rng.multivariate_normal(np.zeros(3), cov, size=(n, n_markers))
+    marker_points = rotate_z(shape.c_markers_mm, angle[:, None]) + marker_noise
+    marker_cov = np.broadcast_to(cov, (n_markers, 3, 3)).copy()
+    frames = []
+    for k in range(n):
+        kwargs = {}
+        if markers:
+            kwargs.update(markers_b_mm=marker_points[k], markers_cov_b=marker_cov)
+        if q_dots is not None:
+            kwargs.update(q_dot=np.atleast_2d(q_dots)[k])
+        if velocity and k > 0:
+            kwargs.update(
+                velocity_b_mm_s=(tips[k] - tips[k - 1]) / DT_S,
+                velocity_cov_b=2.0 * cov / DT_S**2,
+                velocity_tip_cov_b=cov / DT_S,
+            )
+        frames.append(
+            Observation(time_s=t0_s + k * DT_S, q=qs[k], tip_b_mm=tips[k], tip_cov_b=cov, **kwargs)
+        )
+    return frames
+
+
+def combined_crb(catheter, q, delta_L, cov):
+    """Bound of the tip and the markers fused as independent measurements, rad."""
+    return float(crb_markers(catheter, q, delta_L, cov))
+
+
+def run(ukf, frames):
+    ukf.reset()
+    return [ukf.step(frame) for frame in frames]
+
+
+QUIET = UKFSettings(process_noise_rad2_s=0.0, rotation_noise_gain_rad=0.0)
+
+
+# ---------------------------------------------------------------------------- statistics
+@pytest.mark.parametrize("delta_2", DELTA_2)
+def test_final_error_reaches_the_cramer_rao_bound_over_100_frames(delta_2):
+    """RMS of the final estimate over 200 runs of N = 100 frames <= 1.3 CRB / sqrt(N)."""
+    catheter = default_catheter(delta_2)
+    ukf = BendingPlaneUKF(catheter, QUIET)
+    n_frames, n_runs, truth = 100, 200, 0.5
+    rng = np.random.default_rng(11)
+    qs = np.broadcast_to(BENT, (n_frames, 3))
+    errors, stds = [], []
+    for _ in range(n_runs):
+        final = run(ukf, simulate(catheter, qs, truth, rng))[-1]
+        assert final.valid and final.flags == Flag.NONE
+        errors.append(wrap_angle(final.delta_L_rad - truth))
+        stds.append(final.std_rad)
+    bound = combined_crb(catheter, BENT, truth, noise_cov(1.0)) / np.sqrt(n_frames)
+    rms = float(np.sqrt(np.mean(np.square(errors))))
+    assert rms <= 1.3 * bound
+    # The reported std is the accumulated information, i.e. the bound itself.
+    assert np.median(stds) == pytest.approx(bound, rel=0.05)
+
+
+def test_nees_and_nis_lie_in_their_chi_square_bands():
+    """200 runs of 60 frames: the base turns, delta_L random-walks with the modelled noise.
+
+    NIS: innovations are white, so the sum over all runs and frames is chi-square with the
+    summed measurement dimensions. NEES: errors are correlated in time within a run, so the
+    time-averaged NEES is tested against the band of 200 independent runs (dof 200), which
+    is conservative for a time average.
+    """
+    catheter = default_catheter(np.pi / 2)
+    settings = UKFSettings(process_noise_rad2_s=2e-3, rotation_noise_gain_rad=5e-3)
+    ukf = BendingPlaneUKF(catheter, settings)
+    n_frames, n_runs = 60, 200
+    t = np.arange(n_frames) * DT_S
+    q_dot = np.array([0.8, 0.5, -0.4])
+    qs = np.array([0.3, 0.2, 0.9]) + t[:, None] * q_dot
+    intensity = settings.process_noise_rad2_s + settings.rotation_noise_gain_rad * q_dot[0]
+    rng = np.random.default_rng(5)
+    nees_runs, nis_sum, nis_dof = [], 0.0, 0
+    for _ in range(n_runs):
+        steps = rng.normal(0.0, np.sqrt(intensity * DT_S), n_frames)
+        steps[0] = rng.uniform(-np.pi, np.pi)
+        deltas = np.cumsum(steps)
+        frames = simulate(catheter, qs, deltas, rng, q_dots=np.broadcast_to(q_dot, qs.shape))
+        estimates = run(ukf, frames)
+        assert all(e.valid for e in estimates)
+        errors = wrap_angle(np.array([e.delta_L_rad for e in estimates]) - deltas)
+        variances = np.array([e.std_rad for e in estimates]) ** 2
+        nees_runs.append(np.mean(errors**2 / variances))
+        nis_sum += sum(e.nis for e in estimates if e.nis is not None)
+        nis_dof += sum(e.nis_dof for e in estimates if e.nis is not None)
+    nees_low, nees_high = chi2.ppf([0.025, 0.975], n_runs) / n_runs
+    assert nees_low <= np.mean(nees_runs) <= nees_high
+    nis_low, nis_high = chi2.ppf([0.025, 0.975], nis_dof)
+    assert nis_low <= nis_sum <= nis_high
+
+
+def velocity_comparison(settings, frames_for_run, n_runs, rng, truth):
+    """Paired runs with and without velocity: per-run MSE differences and velocity use."""
+    catheter = default_catheter(np.pi / 2)
+    with_velocity = BendingPlaneUKF(catheter, settings)
+    position_only = BendingPlaneUKF(catheter, replace(settings, use_velocity=False))
+    diffs, fused = [], []
+    for _ in range(n_runs):
+        frames = frames_for_run(catheter, rng)
+        a, b = run(with_velocity, frames), run(position_only, frames)
+        fused.append(
+            [
+                e.nis_dof in (9, 12) and e.nis_dof == b_e.nis_dof + 3
+                for e, b_e in zip(a, b, strict=True)
+            ]
+        )
+        err_a = wrap_angle(np.array([e.delta_L_rad for e in a[10:]]) - truth)
+        err_b = wrap_angle(np.array([e.delta_L_rad for e in b[10:]]) - truth)
+        diffs.append(np.mean(err_a**2) - np.mean(err_b**2))
+    return np.array(diffs), np.array(fused)
+
+
+MOVING_Q_DOT = np.array([1.0, 0.3, -0.3])  # base turning at 1 rad/s
+
+
+def moving_joints(n_frames):
+    t = np.arange(n_frames) * DT_S
+    qs = np.array([0.0, 0.5, 0.6]) + t[:, None] * MOVING_Q_DOT
+    return qs, np.broadcast_to(MOVING_Q_DOT, qs.shape)
+
+
+def test_finite_difference_velocity_never_makes_the_error_worse():
+    """Velocities (tip_t - tip_{t-1}) / dt of the measured tips, with their cross-covariance.
+
+    Every 6th frame has a wrongly segmented marker (10 mm off), so the gate rejects it; the
+    next frame's velocity then carries that frame's good tip, which the filter has not used,
+    and is fused. Everywhere else it only repeats the previous tip and is left out. Paired
+    runs: the mean-square error with velocity may exceed the one without by at most three
+    Monte Carlo standard errors.
+    """
+    n_frames, n_runs, truth = 80, 100, -2.0
+    qs, q_dots = moving_joints(n_frames)
+
+    def frames_for_run(catheter, rng):
+        frames = simulate(catheter, qs, truth, rng, sigma_mm=0.2, q_dots=q_dots, velocity=True)
+        for k in range(6, n_frames, 6):
+            markers = frames[k].markers_b_mm.copy()
+            markers[0] += 10.0
+            frames[k] = replace(frames[k], markers_b_mm=markers)
+        return frames
+
+    settings = UKFSettings(process_noise_rad2_s=1e-4, rotation_noise_gain_rad=1e-4)
+    diffs, fused = velocity_comparison(
+        settings, frames_for_run, n_runs, np.random.default_rng(21), truth
+    )
+    after_rejection = np.zeros(n_frames, dtype=bool)
+    after_rejection[7::6] = True
+    assert np.all(fused[:, after_rejection]) and not np.any(fused[:, ~after_rejection])
+    assert diffs.mean() <= 3.0 * diffs.std(ddof=1) / np.sqrt(n_runs)
+
+
+def test_an_independent_velocity_is_fused_every_frame_and_helps():
+    """A velocity whose noise is independent of earlier frames (correlated with this frame's
+    tip through velocity_tip_cov_b) is fused in every frame and lowers the error."""
+    n_frames, n_runs, truth = 80, 100, -2.0
+    qs, q_dots = moving_joints(n_frames)
+    cov = noise_cov(1.0)
+
+    shape = default_catheter(np.pi / 2).shape_vectors(qs, q_dots)
+    tips_true = rotate_z(shape.c_tip_mm, qs[:, 0] + truth)
+    velocities_true = rotate_z(shape.u_tip_mm_s, qs[:, 0] + truth)
+
+    def frames_for_run(catheter, rng):
+        frames = simulate(catheter, qs, truth, rng, q_dots=q_dots)
+        tip_noise = np.array([f.tip_b_mm for f in frames]) - tips_true
+        own_noise = rng.multivariate_normal(np.zeros(3), cov, size=n_frames)
+        velocities = velocities_true + (0.5 * tip_noise + own_noise) / DT_S
+        return [
+            replace(
+                f,
+                velocity_b_mm_s=v,
+                velocity_cov_b=1.25 * cov / DT_S**2,
+                velocity_tip_cov_b=0.5 * cov / DT_S,
+            )
+            for f, v in zip(frames, velocities, strict=True)
+        ]
+
+    settings = UKFSettings(
+        process_noise_rad2_s=1e-4, rotation_noise_gain_rad=1e-4, velocity_is_finite_difference=False
+    )
+    diffs, fused = velocity_comparison(
+        settings, frames_for_run, n_runs, np.random.default_rng(22), truth
+    )
+    assert np.all(fused[:, 1:])
+    assert diffs.mean() <= 3.0 * diffs.std(ddof=1) / np.sqrt(n_runs)
+    assert diffs.mean() < 0.0
+
+
+# ---------------------------------------------------------------------------- tracking
+@pytest.mark.parametrize("include_rate", [False, True])
+def test_tracks_a_drift_through_the_wrap_without_a_two_pi_jump(include_rate):
+    catheter = default_catheter()
+    settings = UKFSettings(
+        process_noise_rad2_s=0.01, include_rate=include_rate, rate_process_noise_rad2_s3=0.05
+    )
+    ukf = BendingPlaneUKF(catheter, settings)
+    n_frames = 80
+    deltas = wrap_angle(2.6 + 0.3 * np.arange(n_frames) * DT_S)  # crosses +pi at frame ~36
+    qs = np.broadcast_to(BENT, (n_frames, 3))
+    estimates = run(ukf, simulate(catheter, qs, deltas, np.random.default_rng(3), sigma_mm=0.5))
+    errors = wrap_angle(np.array([e.delta_L_rad for e in estimates]) - deltas)
+    stds = np.array([e.std_rad for e in estimates])
+    assert np.all(np.abs(errors) < 4.0 * stds)
+    assert np.max(np.abs(errors)) < 0.1
+    estimate_values = np.array([e.delta_L_rad for e in estimates])
+    assert np.all((estimate_values >= -np.pi) & (estimate_values < np.pi))
+    assert estimate_values[0] > 2.5 and estimate_values[-1] < -2.4  # truth ends at -2.498
+    if include_rate:
+        assert ukf.state[1] == pytest.approx(0.3, abs=0.15)
+
+
+def test_torsion_step_of_90_degrees_is_followed_within_three_frames():
+    """K = 3: a 90 degree jump is far outside the NIS gate, so the first two frames after it
+    are rejected; the third consecutive rejection whose data fit the model (closed-form cost
+    inside the gate) re-initialises the filter from the closed form, after which the error is
+    below 3 std. No process noise could explain the jump (the gate also sees the radial
+    residual), so process noise is kept at its default.
+    """
+    k_frames = 3
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    n_before, n_after = 30, 20
+    deltas = np.r_[np.full(n_before, 0.4), np.full(n_after, 0.4 + np.pi / 2)]
+    qs = np.broadcast_to(BENT, (n_before + n_after, 3))
+    estimates = run(ukf, simulate(catheter, qs, deltas, np.random.default_rng(8)))
+    after = estimates[n_before:]
+    for e in after[: k_frames - 1]:
+        assert Flag.OUTLIER_REJECTED in e.flags and Flag.HELD in e.flags
+    for e, truth in zip(after[k_frames - 1 :], deltas[n_before + k_frames - 1 :], strict=True):
+        assert abs(wrap_angle(e.delta_L_rad - truth)) < 3.0 * e.std_rad
+    assert after[-1].rejected_outliers == k_frames - 1
+
+
+def test_a_single_outlier_is_rejected_counted_and_does_not_move_the_estimate():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    rng = np.random.default_rng(4)
+    frames = simulate(catheter, np.broadcast_to(BENT, (30, 3)), 0.7, rng)
+    bad = frames[20]
+    # A wrong segmentation: the tip 10 mm away from where it is, in a random direction.
+    direction = rng.normal(size=3)
+    frames[20] = replace(bad, tip_b_mm=bad.tip_b_mm + 10.0 * direction / np.linalg.norm(direction))
+    estimates = run(ukf, frames)
+    rejected = estimates[20]
+    assert Flag.OUTLIER_REJECTED in rejected.flags and Flag.HELD in rejected.flags
+    assert rejected.rejected_outliers == 1
+    dof = 3 * (1 + len(catheter.marker_arclengths_mm))  # tip and markers (velocity held back)
+    assert rejected.nis > gate_threshold(0.9999, dof) and rejected.nis_dof == dof
+    assert rejected.delta_L_rad == estimates[19].delta_L_rad
+    assert rejected.std_rad > estimates[19].std_rad
+    assert all(Flag.OUTLIER_REJECTED not in e.flags for e in estimates[21:])
+    assert estimates[-1].rejected_outliers == 1
+
+
+# ---------------------------------------------------------------------------- observability
+def test_near_straight_predicts_only_std_grows_and_estimate_holds():
+    catheter = default_catheter(np.pi / 2)
+    ukf = BendingPlaneUKF(catheter, UKFSettings(process_noise_rad2_s=0.02))
+    rng = np.random.default_rng(6)
+    bent = simulate(catheter, np.broadcast_to(BENT, (20, 3)), 1.2, rng)
+    straight_q = np.array([[0.3 + 0.05 * k, 1e-4 * (-1) ** k, 0.0] for k in range(40)])
+    straight = simulate(catheter, straight_q, 1.2, rng, t0_s=bent[-1].time_s + DT_S)
+    estimates = run(ukf, bent + straight)
+    held = estimates[20:]
+    assert all(e.flags == Flag.UNINFORMATIVE | Flag.HELD for e in held)
+    assert all(e.delta_L_rad == estimates[19].delta_L_rad for e in held)
+    stds = np.array([estimates[19].std_rad] + [e.std_rad for e in held])
+    assert np.all(np.diff(stds) > 0)
+    assert stds[-1] <= ukf.settings.max_std_rad
+    assert all(e.informative_radius_mm < 0.01 for e in held)
+
+
+def test_std_growth_is_capped():
+    catheter = default_catheter()
+    settings = UKFSettings(process_noise_rad2_s=5.0)
+    ukf = BendingPlaneUKF(catheter, settings)
+    frames = simulate(
+        catheter,
+        np.array([[0.0, 0.8, 0.6]] + [[0.0, 0.0, 0.0]] * 50),
+        0.0,
+        np.random.default_rng(0),
+    )
+    stds = [e.std_rad for e in run(ukf, frames)]
+    assert max(stds) == pytest.approx(settings.max_std_rad)
+    assert np.all(np.diff(stds) >= -1e-12)
+
+
+def test_not_initialised_until_the_first_informative_frame():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    qs = np.array([[0.1, 0.0, 0.0]] * 5 + [list(BENT)] * 5)
+    estimates = run(ukf, simulate(catheter, qs, -0.3, np.random.default_rng(1)))
+    for e in estimates[:5]:
+        assert Flag.NOT_INITIALISED in e.flags and Flag.UNINFORMATIVE in e.flags
+        assert np.isnan(e.delta_L_rad) and not e.valid
+    first = estimates[5]
+    assert first.valid and first.flags == Flag.NONE
+    # The first estimate is the global closed form of that frame's data, with its Fisher std.
+    closed = make_estimator("body-positions", catheter).step(
+        replace(simulate(catheter, BENT, -0.3, np.random.default_rng(99))[0], tip_b_mm=None)
+    )
+    assert first.std_rad < 2 * closed.std_rad
+    assert abs(wrap_angle(first.delta_L_rad + 0.3)) < 4 * first.std_rad
+
+
+def test_initial_state_is_the_closed_form_of_the_first_frame():
+    catheter = default_catheter(np.pi / 2)
+    frame = simulate(catheter, BENT, 2.9, np.random.default_rng(2), markers=False)[0]
+    first = BendingPlaneUKF(catheter).step(frame)
+    closed = make_estimator("tip-position", catheter).step(frame)
+    assert first.delta_L_rad == pytest.approx(closed.delta_L_rad, abs=1e-12)
+    assert first.std_rad == pytest.approx(closed.std_rad, rel=1e-9)
+
+
+# ---------------------------------------------------------------------------- missing data
+def test_missing_or_nan_measurements_give_predict_only_steps():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter, UKFSettings(process_noise_rad2_s=1e-3))
+    frames = simulate(catheter, np.broadcast_to(BENT, (15, 3)), 0.2, np.random.default_rng(9))
+    nan = np.full(3, np.nan)
+    frames[10] = replace(frames[10], tip_b_mm=nan, markers_b_mm=np.full_like(frames[10].markers_b_mm, np.nan))
+    frames[11] = replace(frames[11], tip_b_mm=None, markers_b_mm=None)
+    frames[12] = replace(frames[12], tip_cov_b=np.full((3, 3), np.nan), markers_b_mm=None)
+    estimates = run(ukf, frames)
+    for k in (10, 11, 12):
+        e = estimates[k]
+        assert Flag.NO_MEASUREMENT in e.flags and Flag.HELD in e.flags
+        assert e.valid and e.innovation is None
+        assert e.delta_L_rad == estimates[9].delta_L_rad
+        assert e.std_rad > estimates[k - 1].std_rad
+    assert estimates[13].flags == Flag.NONE and estimates[13].std_rad < estimates[12].std_rad
+
+
+def test_partially_missing_markers_update_with_what_is_there():
+    catheter = default_catheter(marker_arclengths_mm=(6.5, 13.0))
+    ukf = BendingPlaneUKF(catheter)
+    frames = simulate(catheter, np.broadcast_to(BENT, (12, 3)), 0.2, np.random.default_rng(10))
+    markers = frames[10].markers_b_mm.copy()
+    markers[0] = np.nan
+    frames[10] = replace(frames[10], markers_b_mm=markers)
+    frames[11] = replace(frames[11], tip_b_mm=np.full(3, np.nan))
+    estimates = run(ukf, frames)
+    for e in estimates[10:]:
+        assert e.flags == Flag.PARTIAL and e.valid
+    assert estimates[10].nis_dof == 6 and estimates[11].nis_dof == 6
+    assert estimates[10].std_rad < estimates[9].std_rad
+
+
+# ---------------------------------------------------------------------------- identities
+@pytest.mark.parametrize("delta_2", DELTA_2)
+@pytest.mark.parametrize("kind", ["tip-position", "body-positions"])
+def test_one_update_from_a_wide_prior_matches_the_closed_form_fisher_std(delta_2, kind):
+    """Low noise (0.05 mm, near linear): a prior of std 0.2 rad (80 x the frame's std) updated
+    once gives the per-frame closed-form result, std within 3 % and mean within 0.2 std.
+    """
+    catheter = default_catheter(delta_2)
+    rng = np.random.default_rng(12)
+    frame = simulate(catheter, BENT, 1.0, rng, sigma_mm=0.05, markers=kind == "body-positions")[0]
+    if kind == "body-positions":
+        frame = replace(frame, tip_b_mm=None)
+    closed = make_estimator(kind, catheter).step(frame)
+    ukf = BendingPlaneUKF(catheter, QUIET)
+    ukf.initialise(1.0, 0.2, time_s=frame.time_s)
+    estimate = ukf.step(frame)
+    assert estimate.flags == Flag.NONE
+    assert estimate.std_rad == pytest.approx(closed.std_rad, rel=0.03)
+    assert abs(wrap_angle(estimate.delta_L_rad - closed.delta_L_rad)) < 0.2 * closed.std_rad
+
+
+def test_rate_state_prediction_matches_the_linear_kalman_filter():
+    """With include_rate the process model is linear: P' = F P F^T + Q exactly."""
+    catheter = default_catheter()
+    settings = UKFSettings(
+        include_rate=True,
+        process_noise_rad2_s=0.01,
+        rate_process_noise_rad2_s3=0.2,
+        initial_rate_std_rad_s=0.3,
+    )
+    ukf = BendingPlaneUKF(catheter, settings)
+    ukf.initialise(0.5, 0.1, time_s=0.0)
+    P0 = ukf.covariance
+    estimate = ukf.step(Observation(time_s=0.2, q=BENT))
+    assert Flag.NO_MEASUREMENT in estimate.flags
+    dt = 0.2
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    qa = settings.rate_process_noise_rad2_s3
+    Q = np.array([[0.01 * dt + qa * dt**3 / 3, qa * dt**2 / 2], [qa * dt**2 / 2, qa * dt]])
+    np.testing.assert_allclose(ukf.covariance, F @ P0 @ F.T + Q, rtol=1e-12, atol=1e-15)
+    assert ukf.state[0] == pytest.approx(0.5)
+
+
+def test_sigma_sqrt_and_inverse_are_cholesky_with_documented_jitter():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    A = A @ A.T + 0.1 * np.eye(6)
+    U = sigma_sqrt(A)
+    np.testing.assert_allclose(U.T @ U, A, rtol=1e-12, atol=1e-12)
+    assert np.allclose(U, np.triu(U))
+    np.testing.assert_allclose(spd_inverse(A), np.linalg.inv(A), rtol=1e-9, atol=1e-12)
+    singular = np.array([[1.0, 1.0], [1.0, 1.0]])  # PSD, rank one: the jitter makes it PD
+    U = sigma_sqrt(singular)
+    np.testing.assert_allclose(U.T @ U, singular, atol=1e-8)
+    with pytest.raises(np.linalg.LinAlgError):
+        sigma_sqrt(np.array([[1.0, 0.0], [0.0, -1.0]]))
+
+
+def test_a_non_positive_definite_covariance_is_repaired_never_nan():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter, UKFSettings(include_rate=True))
+    frames = simulate(catheter, np.broadcast_to(BENT, (10, 3)), 0.3, np.random.default_rng(3))
+    estimates = [ukf.step(f) for f in frames[:5]]
+    # Simulate what filterpy's predict cannot factorise (as after a numerically broken update).
+    ukf._kf.P = np.array([[1e-4, 1.0], [1.0, 1e-4]])
+    repaired = ukf.step(frames[5])
+    assert Flag.COVARIANCE_REPAIRED in repaired.flags and repaired.valid
+    estimates += [ukf.step(f) for f in frames[6:]]
+    assert np.all(np.linalg.eigvalsh(ukf.covariance) > 0)
+    assert abs(wrap_angle(estimates[-1].delta_L_rad - 0.3)) < 3 * estimates[-1].std_rad
+
+
+# ---------------------------------------------------------------------------- single views
+RIGS = {"orthographic": (default_orthographic_rig, 0.5), "pinhole": (default_pinhole_rig, 1.0)}
+R_W_B = rot_z(0.4) @ rot_y(0.3)
+O_B_W = np.array([5.0, -3.0, 20.0])
+
+
+def view_frame(catheter, view, q, delta_L, rng, time_s, sigma):
+    """One view's segmented tip and markers (point_index -1 and 0..n-1), noise sigma (mm or px)."""
+    points_b = np.vstack(
+        [
+            catheter.tip(q, delta_L)[None],
+            catheter.backbone(q, delta_L, catheter.marker_arclengths_mm),
+        ]
+    )
+    uv = view.project(points_b @ R_W_B.T + O_B_W)
+    uv = uv + rng.normal(0.0, sigma, uv.shape)
+    measurement = ViewMeasurement(
+        view=view,
+        R_w_b=R_W_B,
+        o_b_w_mm=O_B_W,
+        uv=uv,
+        cov=np.broadcast_to(sigma**2 * np.eye(2), (len(uv), 2, 2)).copy(),
+        point_index=np.arange(-1, points_b.shape[0] - 1),
+    )
+    return Observation(time_s=time_s, q=q, views=(measurement,))
+
+
+@pytest.mark.parametrize("delta_2", DELTA_2)
+@pytest.mark.parametrize("rig_kind", sorted(RIGS))
+def test_single_view_updates_reduce_the_std_and_converge(delta_2, rig_kind):
+    """A poor 3-D start (5 mm noise), then 60 frames from alternating, unsynchronised views."""
+    make_rig, sigma = RIGS[rig_kind]
+    rig = make_rig()
+    catheter = default_catheter(delta_2)
+    ukf = BendingPlaneUKF(catheter, QUIET)
+    rng = np.random.default_rng(14)
+    truth = -1.1
+    first = simulate(catheter, BENT, truth, rng, sigma_mm=5.0)[0]
+    estimates = [ukf.step(first)]
+    assert estimates[0].valid
+    for k in range(1, 61):
+        view = rig.front if k % 2 else rig.side
+        q = BENT + np.array([0.02 * k, 0.0, 0.0])
+        estimates.append(ukf.step(view_frame(catheter, view, q, truth, rng, k * DT_S, sigma)))
+    stds = np.array([e.std_rad for e in estimates])
+    assert np.all(np.diff(stds) < 0)
+    dof = 2 * (1 + len(catheter.marker_arclengths_mm))  # tip and markers, 2-D each
+    assert all(e.flags == Flag.NONE and e.nis_dof == dof for e in estimates[1:])
+    assert stds[-1] < stds[0] / 5
+    assert abs(wrap_angle(estimates[-1].delta_L_rad - truth)) < 3 * stds[-1]
+
+
+def test_a_single_view_does_not_initialise_the_filter():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    view = default_orthographic_rig().front
+    frame = view_frame(catheter, view, BENT, 0.5, np.random.default_rng(0), 0.0, sigma=0.5)
+    estimate = ukf.step(frame)
+    assert Flag.NOT_INITIALISED in estimate.flags and not estimate.valid
+
+
+# ---------------------------------------------------------------------------- settings, misc
+def test_online_noise_scale_finds_an_underestimated_segmentation_noise():
+    """True noise 2 mm, assumed 1 mm: the covariance scale converges towards 4."""
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter, UKFSettings(estimate_noise=True, process_noise_rad2_s=1e-4))
+    rng = np.random.default_rng(15)
+    frames = simulate(catheter, np.broadcast_to(BENT, (400, 3)), 0.0, rng, sigma_mm=2.0)
+    assumed = noise_cov(1.0)
+    frames = [
+        replace(f, tip_cov_b=assumed, markers_cov_b=np.broadcast_to(assumed, f.markers_cov_b.shape).copy())
+        for f in frames
+    ]
+    estimates = run(ukf, frames)
+    assert ukf.noise_scale == pytest.approx(4.0, rel=0.3)
+    errors = [wrap_angle(e.delta_L_rad) for e in estimates[200:]]
+    stds = [e.std_rad for e in estimates[200:]]
+    assert np.sqrt(np.mean(np.square(errors))) < 1.5 * np.mean(stds)
+
+
+def test_make_estimator_builds_the_ukf_variants():
+    catheter = default_catheter()
+    ukf = make_estimator("ukf", catheter, process_noise_rad2_s=1e-3)
+    position = make_estimator("ukf-position", catheter)
+    assert isinstance(ukf, BendingPlaneUKF) and ukf.name == "ukf"
+    assert ukf.settings.use_velocity and not position.settings.use_velocity
+    assert position.name == "ukf-position"
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"process_noise_rad2_s": -1.0},
+        {"rotation_noise_gain_rad": float("nan")},
+        {"gate_probability": 0.0},
+        {"gate_probability": 1.5},
+        {"uninformative_std_rad": 0.0},
+        {"max_std_rad": np.pi},  # sigma points beyond pi
+        {"uninformative_std_rad": 1.5, "max_std_rad": 1.0},
+        {"reacquire_after_rejections": -1},
+        {"noise_forgetting": 1.0},
+        {"initial_std_rad": 0.0},
+        {"alpha": 0.0},
+    ],
+)
+def test_settings_are_validated_with_clear_errors(bad):
+    with pytest.raises(ValueError, match="UKFSettings"):
+        UKFSettings(**bad)
+
+
+def test_out_of_order_frames_are_refused():
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    frames = simulate(catheter, np.broadcast_to(BENT, (2, 3)), 0.0, np.random.default_rng(0))
+    ukf.step(frames[1])
+    with pytest.raises(ValueError, match="time order"):
+        ukf.step(frames[0])
