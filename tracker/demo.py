@@ -19,7 +19,7 @@ from replay.simulator import (
 )
 from tracker.pipeline import Reconstructor
 
-DEMO_METHODS = ("tip-position", "body-positions", "tip-velocity")
+DEMO_METHODS = ("tip-position", "body-positions", "tip-velocity", "ukf")
 
 
 def run_demo(
