@@ -1,0 +1,108 @@
+"""Timing of the full-size sensitivity studies, and the least-squares baseline's agreement.
+
+Run from the repository root: ``python benchmarks/bench_studies.py`` (prints only; no asserts).
+
+- The three studies at full size (500 trials per point, both delta_2, every method: the
+  per-frame closed forms, the UKF on the first ``--ukf-trials`` trials of every point, and the
+  bounds) on a local process pool. Target: <= 60 s on a 2-core machine, pool start-up included.
+- The paper's least-squares baseline (scipy ``least_squares`` from delta_L = 0) on a subsample
+  of the same frames (the first ``--lsq-trials-per-point`` trials of every study point), and how
+  often it agrees with the closed form (wrapped difference below 1e-3 rad).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from replay.studies import (  # noqa: E402
+    SensitivitySettings,
+    baseline_agreement,
+    findings,
+    make_tasks,
+    run_sensitivity,
+    study_points,
+)
+
+TARGET_S = 60.0
+AGREEMENT_TOLERANCE_RAD = 1e-3
+
+
+def verdict(ok: bool) -> str:
+    return "PASS" if ok else "MISS"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--ukf-trials", type=int, default=SensitivitySettings.ukf_trials)
+    parser.add_argument("--lsq-trials-per-point", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    settings = SensitivitySettings(seed=args.seed, ukf_trials=args.ukf_trials)
+    points = study_points(settings)
+    tasks = make_tasks(settings, points)
+    print(f"Python {platform.python_version()}, numpy {np.__version__}, {platform.machine()},")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"{os.cpu_count()} CPUs, {args.workers} workers, load average {load:.2f} before the run")
+    print()
+    print(
+        f"Sensitivity studies a, b, c: {len(points)} study points, {len(tasks)} tasks,"
+        f" {settings.trials} trials per point for the per-frame closed forms and the bound,"
+        f" {settings.effective_ukf_trials} for the UKF ({settings.frames_per_trial} frames each),"
+        f" seed {settings.seed}"
+    )
+    started = time.perf_counter()
+    result = run_sensitivity(settings, workers=args.workers, progress=True)
+    total = time.perf_counter() - started
+    print(f"  total {total:.1f} s   target <= {TARGET_S:.0f} s   {verdict(total <= TARGET_S)}")
+    held = [f for f in findings(result.rows) if f.holds is not None]
+    print(f"  the paper's findings hold: {sum(f.holds for f in held)} of {len(held)}")
+    for f in held:
+        if not f.holds:
+            print(f"    does not hold: {f.claim}")
+
+    per_frame = SensitivitySettings(seed=args.seed, ukf_trials=0)
+    started = time.perf_counter()
+    run_sensitivity(per_frame, workers=args.workers, progress=False)
+    print(
+        f"  for context: the same without the UKF (closed forms and bounds only)"
+        f" {time.perf_counter() - started:.1f} s"
+    )
+    print()
+
+    n = args.lsq_trials_per_point
+    print(
+        f"Least-squares baseline vs closed form: first {n} trials of every study point,"
+        f" {len(points) * n * 3} solves (3 estimators)"
+    )
+    started = time.perf_counter()
+    rates = baseline_agreement(
+        settings, trials_per_point=n, tolerance_rad=AGREEMENT_TOLERANCE_RAD, workers=args.workers
+    )
+    elapsed = time.perf_counter() - started
+    for name in ("tip-position", "body-positions", "tip-velocity"):
+        print(f"  {name:15s} agrees in {100 * rates[name]:.1f}% of trials")
+    print(
+        f"  all             agrees in {100 * rates['all']:.1f}% of {int(rates['trials'])} solves"
+        f" (|wrapped difference| < {AGREEMENT_TOLERANCE_RAD:g} rad), {elapsed:.1f} s"
+    )
+    print(
+        f"  away from the straight configuration (where every angle minimises the cost):"
+        f" {100 * rates['bent']:.1f}%"
+    )
+
+
+if __name__ == "__main__":
+    main()
