@@ -30,6 +30,8 @@ class Flag(enum.Flag):
     NOT_INITIALISED = enum.auto()  # the UKF has not seen an informative frame yet
     COVARIANCE_REPAIRED = enum.auto()  # a non-positive-definite covariance was repaired
     NOT_CONVERGED = enum.auto()  # the least-squares baseline did not report convergence
+    MODEL_MISMATCH = enum.auto()  # data persistently inconsistent with the model (e.g. contact
+    # deflection): accepted with its covariance inflated to the observed misfit
 
 
 @dataclass(frozen=True)

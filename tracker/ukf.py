@@ -75,6 +75,10 @@ COVARIANCE_JITTER_FLOOR = 1e-15
 # Step for the numerical derivative of a projection with respect to delta_L, rad.
 _VIEW_DERIVATIVE_STEP_RAD = 1e-6
 _TWO_PI = 2.0 * math.pi
+# Per accepted update, the excess of the model-mismatch noise inflation is multiplied by this.
+MISMATCH_DECAY = 0.99
+# The model-mismatch inflation of the measurement covariance never exceeds this factor.
+MAX_MISMATCH_SCALE = 1e4
 # Sigma-point offsets of a 1-D state in units of the square root: x, x + U, x - U.
 _UNIT_OFFSETS = np.array([[0.0], [1.0], [-1.0]])
 
@@ -573,6 +577,7 @@ class BendingPlaneUKF:
         self._rejected = 0
         self._consecutive_rejections = 0
         self._noise_scale = 1.0
+        self._mismatch_scale = 1.0
         self._tip_fused_last_step = False
         self._good_x = self._kf.x.copy()
         self._good_P = self._kf.P.copy()
@@ -911,7 +916,8 @@ class BendingPlaneUKF:
     def _update(self, t: float, q_r: float, measurement: _Measurement, flags: Flag) -> Estimate:
         """filterpy's update, then the informativeness check and the NIS gate."""
         kf = self._kf
-        R = measurement.R if self._noise_scale == 1.0 else measurement.R * self._noise_scale
+        scale = self._noise_scale * self._mismatch_scale
+        R = measurement.R if scale == 1.0 else measurement.R * scale
         try:
             nis = kf.update_sigmas(measurement.z, R, measurement.hx)
         except np.linalg.LinAlgError:
@@ -941,6 +947,8 @@ class BendingPlaneUKF:
         if not nis <= gate:
             return self._reject(t, q_r, measurement, flags, innovation.copy(), nis, dof)
         self._consecutive_rejections = 0
+        # A model-mismatch inflation fades once the data fit again (about 1 % per frame).
+        self._mismatch_scale = 1.0 + MISMATCH_DECAY * (self._mismatch_scale - 1.0)
         P = kf.P
         if P.shape[0] > 1:
             P = kf.P = 0.5 * (P + P.T)
@@ -959,10 +967,12 @@ class BendingPlaneUKF:
         self._consecutive_rejections += 1
         limit = self.settings.reacquire_after_rejections
         if limit and self._consecutive_rejections >= limit and measurement.c_vectors is not None:
-            phi, std, consistent = self._closed_form(measurement)
+            phi, std, consistent, misfit = self._closed_form(measurement)
             if consistent and std < self.settings.uninformative_std_rad:
                 # The data agree with the model, only not with the prior: a torsion jump.
                 return self._restart(t, q_r, phi, std, measurement, flags)
+            if std * misfit < self.settings.uninformative_std_rad:
+                return self._accept_mismatch(t, q_r, phi, std, misfit, measurement, flags)
         self._rejected += 1
         flags |= Flag.OUTLIER_REJECTED | Flag.HELD
         return self._estimate(t, q_r, flags, measurement.radius_mm, innovation, nis, dof)
@@ -980,9 +990,13 @@ class BendingPlaneUKF:
         self._kf.x = self._prior_x.copy()
         self._kf.P = self._prior_P.copy()
 
-    def _closed_form(self, measurement: _Measurement) -> tuple[float, float, bool]:
-        """Global closed-form fit of the 3-D data: (phi, Fisher std, consistent)."""
-        R = measurement.R * self._noise_scale
+    def _closed_form(self, measurement: _Measurement) -> tuple[float, float, bool, float]:
+        """Global closed-form fit of the 3-D data: (phi, Fisher std, consistent, misfit).
+
+        ``misfit`` is sqrt(cost / dof) clipped below at 1: the factor by which the noise would
+        have to be larger for the data to fit the model.
+        """
+        R = measurement.R * (self._noise_scale * self._mismatch_scale)
         _check_measurement_covariance(R)
         W = spd_inverse(R)
         fit = fit_rotation_z(measurement.y_vectors, measurement.c_vectors, W)
@@ -990,8 +1004,24 @@ class BendingPlaneUKF:
         std = 1.0 / math.sqrt(information) if information > 0 else math.inf
         # The minimised cost is chi-square with one degree of freedom fewer than the data.
         dof = max(measurement.z.size - 1, 1)
-        consistent = float(fit.cost) <= gate_threshold(self.settings.gate_probability, dof)
-        return float(fit.phi_rad), std, consistent
+        cost = float(fit.cost)
+        consistent = cost <= gate_threshold(self.settings.gate_probability, dof)
+        return float(fit.phi_rad), std, consistent, math.sqrt(max(1.0, cost / dof))
+
+    def _persistent_mismatch(self) -> bool:
+        """True once ``reacquire_after_rejections`` frames in a row were inconsistent."""
+        limit = self.settings.reacquire_after_rejections
+        return bool(limit) and self._consecutive_rejections >= limit
+
+    def _accept_mismatch(self, t, q_r, phi, std, misfit, measurement, flags) -> Estimate:
+        """Data that stay inconsistent with the model frame after frame (contact deflection,
+        a miscalibrated model) are not a passing outlier: restart from their closed form with
+        the std inflated by the misfit, inflate the measurement noise by the same factor for
+        the frames that follow, and say so, rather than refuse to answer."""
+        self._mismatch_scale = min(self._mismatch_scale * misfit**2, MAX_MISMATCH_SCALE)
+        return self._restart(
+            t, q_r, phi, std * misfit, measurement, flags | Flag.MODEL_MISMATCH
+        )
 
     def _try_first(self, t: float, q_r: float, measurement: _Measurement | None) -> Estimate:
         flags = Flag.NOT_INITIALISED
@@ -1000,21 +1030,27 @@ class BendingPlaneUKF:
         if measurement.c_vectors is None:
             # A single view leaves a mirror ambiguity: it updates a filter, never starts one.
             return self._invalid(t, q_r, flags | Flag.UNINFORMATIVE, measurement.radius_mm)
-        phi, std, consistent = self._closed_form(measurement)
+        phi, std, consistent, misfit = self._closed_form(measurement)
         if not std < self.settings.uninformative_std_rad:
             return self._invalid(t, q_r, flags | Flag.UNINFORMATIVE, measurement.radius_mm)
+        partial = Flag.PARTIAL if measurement.partial else Flag.NONE
         if not consistent:
+            self._consecutive_rejections += 1
+            if self._persistent_mismatch() and std * misfit < self.settings.uninformative_std_rad:
+                return self._accept_mismatch(t, q_r, phi, std, misfit, measurement, partial)
             self._rejected += 1
             return self._invalid(t, q_r, flags | Flag.OUTLIER_REJECTED, measurement.radius_mm)
-        partial = Flag.PARTIAL if measurement.partial else Flag.NONE
         return self._restart(t, q_r, phi, std, measurement, partial)
 
     def _reacquire(self, t: float, q_r: float, measurement: _Measurement, flags: Flag) -> Estimate:
         """Re-initialise from the closed form when the prior carries (almost) nothing."""
-        phi, std, consistent = self._closed_form(measurement)
+        phi, std, consistent, misfit = self._closed_form(measurement)
         if not std < self.settings.uninformative_std_rad:
             return self._held(t, q_r, flags | Flag.UNINFORMATIVE, measurement.radius_mm)
         if not consistent:
+            self._consecutive_rejections += 1
+            if self._persistent_mismatch() and std * misfit < self.settings.uninformative_std_rad:
+                return self._accept_mismatch(t, q_r, phi, std, misfit, measurement, flags)
             self._rejected += 1
             return self._held(t, q_r, flags | Flag.OUTLIER_REJECTED, measurement.radius_mm)
         return self._restart(t, q_r, phi, std, measurement, flags)
