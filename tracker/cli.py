@@ -375,14 +375,17 @@ def _add_evaluate(sub) -> None:
     p.add_argument("--out", default="results/evaluate", metavar="DIR", help="output directory")
     p.add_argument("--no-rrd", action="store_true", help="do not write replay.rrd")
     p.add_argument(
-        "--rrd-frame-every", type=int, default=1, metavar="N", help="3-D scene every N frames (1)"
+        "--rrd-frame-every", type=int, default=4, metavar="N", help="3-D scene every N frames (4)"
     )
     p.add_argument(
         "--rrd-image-every", type=int, default=20, metavar="N", help="images every N frames (20)"
     )
     p.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     p.add_argument(
-        "--workers", type=int, help="local processes for several recordings (default: all CPUs)"
+        "--workers",
+        type=int,
+        help="local processes: one per recording, or one per method for a single recording"
+        " (default: all CPUs)",
     )
     p.add_argument(
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (tcp://host:8786)"
@@ -392,6 +395,7 @@ def _add_evaluate(sub) -> None:
 
 
 def _run_evaluate(args: argparse.Namespace) -> int:
+    import os
     from pathlib import Path
 
     from replay import evaluation
@@ -406,7 +410,11 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     )
     if len(args.recordings) == 1 and not args.scheduler:
         result = evaluation.evaluate_recording(
-            args.recordings[0], args.out, progress=not args.no_progress, **options
+            args.recordings[0],
+            args.out,
+            progress=not args.no_progress,
+            workers=(os.cpu_count() or 1) if args.workers is None else args.workers,
+            **options,
         )
         print(Path(result.files[0]).read_text(), end="")
         print(

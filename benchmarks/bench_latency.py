@@ -1,0 +1,160 @@
+"""Image-to-estimate latency of the live loop (prints only; no asserts).
+
+Run from the repository root: ``python benchmarks/bench_latency.py [--frames N]``.
+
+Two 640x480 rendered frames per step (replay.render, the default render rig), fed to
+:class:`tracker.live.LiveTracker` as they would come from two cameras: joint datagrams at
+1 kHz over loopback UDP (33 per frame, drained by the loop), the UKF, and the estimate
+datagram sent back over UDP. Latency is from the moment the image pair is handed to the loop
+to the estimate being ready (the number sent in the estimate datagram), and to every sink
+being done. Two runs:
+
+- ``segmentation``: the images are segmented in the loop (tracker.segmentation);
+- ``markers``: the same points segmented beforehand and handed over as
+  :class:`tracker.udp.SegmentedMarkers` (what an external segmenter sends).
+
+Target: p99 <= 5 ms image -> estimate. The first 10 frames (UKF start) are left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from models.catheter import default_catheter  # noqa: E402
+from models.rotations import wrap_angle  # noqa: E402
+from replay.render import Renderer, default_render_rig  # noqa: E402
+from replay.simulator import default_scene  # noqa: E402
+from tracker.estimators import make_estimator  # noqa: E402
+from tracker.live import LiveTracker  # noqa: E402
+from tracker.pipeline import Reconstructor  # noqa: E402
+from tracker.sources import ImagePair, session_joints, simulated_session  # noqa: E402
+from tracker.udp import (  # noqa: E402
+    EstimateSender,
+    JointReceiver,
+    SegmentedMarkers,
+    encode_joints,
+)
+
+TARGET_P99_MS = 5.0
+FRAME_RATE_HZ = 30.0
+JOINT_RATE_HZ = 1000
+WARM_UP = 10
+
+
+def percentiles_ms(values_s) -> tuple[float, float, float]:
+    v = 1e3 * np.asarray(values_s)
+    return float(np.median(v)), float(np.percentile(v, 99)), float(v.max())
+
+
+def run(label, items, scene, truth, segmenter=None) -> None:
+    """Feed items through a fresh loop; print the latency percentiles."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as controller:
+        controller.bind(("127.0.0.1", 0))
+        controller.setblocking(False)
+        joints = JointReceiver(port=0, clock="sender")
+        tracker = LiveTracker(
+            Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+            make_estimator("ukf", scene.catheter),
+            [EstimateSender(controller.getsockname())],
+            joints=joints,
+            segmenter=segmenter,
+        )
+        sample = 0
+        latency, cycle, errors = [], [], []
+        for k, item in enumerate(items):
+            t = item[0] if isinstance(item, tuple) else item.time_s
+            while sample / JOINT_RATE_HZ <= t + 0.001:  # the controller streams on meanwhile
+                ts = sample / JOINT_RATE_HZ
+                controller.sendto(encode_joints(sample, ts, *session_joints(ts)), joints.address)
+                sample += 1
+            handed = time.perf_counter()
+            result = tracker.step(item, tracker.monotonic())
+            done = time.perf_counter()
+            try:
+                while True:
+                    controller.recv(256)
+            except BlockingIOError:
+                pass
+            if k >= WARM_UP and result is not None:
+                latency.append(result.latency_s)
+                cycle.append(done - handed)
+                errors.append(wrap_angle(result.estimate.delta_L_rad - truth[k]))
+        tracker.close()
+    p50, p99, worst = percentiles_ms(latency)
+    c50, c99, _ = percentiles_ms(cycle)
+    rms = float(np.degrees(np.sqrt(np.nanmean(np.square(errors)))))
+    verdict = "PASS" if p99 <= TARGET_P99_MS else "MISS"
+    print(
+        f"{label:>13}: image -> estimate p50 {p50:6.2f} ms, p99 {p99:6.2f} ms (max {worst:6.2f})"
+        f" [{verdict} p99 <= {TARGET_P99_MS:g} ms]; -> sinks done p50 {c50:5.2f} ms,"
+        f" p99 {c99:5.2f} ms; delta_L RMS error {rms:.2f} deg over {len(latency)} frames"
+    )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=300, help="frames per run (300)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    session = simulated_session(
+        args.frames / FRAME_RATE_HZ, FRAME_RATE_HZ, noise=0.0, catheter=catheter, rig=scene.rig
+    )
+    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=args.seed)
+    rng = np.random.default_rng(args.seed)
+    print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+    started = time.perf_counter()
+    pairs = [
+        ImagePair(f.time_s, *renderer.render(f.q, f.delta_L_true_rad, rng).images)
+        for f in session.frames
+    ]
+    h, w = pairs[0].image_front.shape
+    print(f"rendered {len(pairs)} pairs of {w}x{h} images in {time.perf_counter() - started:.1f} s")
+    try:
+        from tracker.segmentation import PairSegmenter
+    except ImportError:
+        PairSegmenter = None
+    truth = session.delta_L_true_rad
+    if PairSegmenter is not None:
+        segmenter = PairSegmenter(
+            catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+        )
+        run("segmentation", pairs, scene, truth, segmenter)
+        markers = []
+        for i, pair in enumerate(pairs):
+            seg = segmenter.segment((pair.image_front, pair.image_side))
+            markers.append(
+                SegmentedMarkers(
+                    pair.time_s, seg.uv_front, seg.uv_side, seg.cov_front, seg.cov_side, i
+                )
+            )
+        source = "segmented beforehand"
+    else:
+        print("tracker.segmentation is not available: markers only (true points + 0.5 px)")
+        cov = np.tile(0.25 * np.eye(2), (3, 1, 1))
+        markers = [
+            SegmentedMarkers(f.time_s, *renderer.render(f.q, f.delta_L_true_rad, rng).points_px,
+                             cov, cov, i)
+            for i, f in enumerate(session.frames)
+        ]
+        source = "true projections"
+    print(f"markers: {source}")
+    run("markers", markers, scene, truth)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

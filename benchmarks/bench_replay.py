@@ -1,0 +1,163 @@
+"""Replay throughput of recordings (prints only; no asserts).
+
+Run from the repository root: ``python benchmarks/bench_replay.py [--quick]``.
+
+- Markers only, through the UKF: a simulated paper-protocol recording (11 planes, joints at
+  1 kHz) read, reconstructed and run through the UKF. Target: >= 5,000 frames/s overall.
+  The UKF step alone costs more than 200 us on small machines, which caps the overall rate
+  below the target whatever the reading costs; so every stage is also reported on its own:
+  reading (MCAP scan, JSON, joint interpolation), reconstruction (one batch), the UKF step,
+  and the live loop's frame-by-frame reconstruction for comparison.
+- With images, through segmentation and the UKF: image decoding, segmentation of both
+  views, reconstruction and the UKF.
+
+Linear algebra runs on one BLAS thread, as in ``cathtrack evaluate`` (replay.studies.
+single_blas_thread): the matrices are tiny and BLAS threads only add contention.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from replay.evaluation import observations_batch, recording_scene  # noqa: E402
+from replay.protocol import ProtocolSettings, simulate_protocol  # noqa: E402
+from replay.recording import open_recording  # noqa: E402
+from replay.studies import single_blas_thread  # noqa: E402
+from tracker.estimators import make_estimator  # noqa: E402
+from tracker.pipeline import Reconstructor  # noqa: E402
+
+TARGET_FRAMES_PER_S = 5000.0
+UKF_BUDGET_US = 1e6 / TARGET_FRAMES_PER_S
+
+
+def _rate(frames: int, seconds: float) -> str:
+    return f"{frames / seconds:10.0f} frames/s  ({1e6 * seconds / frames:7.1f} us/frame)"
+
+
+def bench_markers(directory: Path, configurations: int) -> None:
+    settings = ProtocolSettings(images=False, configurations=configurations)
+    path = directory / "markers.mcap"
+    started = time.perf_counter()
+    summary = simulate_protocol(settings, path, workers=1, progress=False)
+    written_s = time.perf_counter() - started
+    print(
+        f"markers-only recording: {summary.frames} frames, {summary.joint_samples} joint"
+        f" samples at 1 kHz, {summary.bytes / 1e6:.1f} MB (written in {written_s:.1f} s)"
+    )
+    best: dict[str, float] = {}
+    for _ in range(3):
+        t0 = time.perf_counter()
+        with open_recording(path) as recording:
+            frames = [r.frame for r in recording.frames(images=False)]
+            scene = recording_scene(recording)
+        t1 = time.perf_counter()
+        reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
+        observations = observations_batch(reconstructor, frames)
+        t2 = time.perf_counter()
+        ukf = make_estimator("ukf", scene.catheter)
+        for observation in observations:
+            ukf.step(observation)
+        t3 = time.perf_counter()
+        reconstructor.reset()
+        for frame in frames:
+            reconstructor.observe(frame)
+        t4 = time.perf_counter()
+        for key, value in (
+            ("read", t1 - t0),
+            ("reconstruct", t2 - t1),
+            ("ukf", t3 - t2),
+            ("observe", t4 - t3),
+        ):
+            best[key] = min(best.get(key, np.inf), value)
+    n = len(frames)
+    total = best["read"] + best["reconstruct"] + best["ukf"]
+    overhead = best["read"] + best["reconstruct"]
+    print(f"  read (scan, JSON, interpolation) {_rate(n, best['read'])}")
+    print(f"  reconstruction, one batch        {_rate(n, best['reconstruct'])}")
+    print(f"  (live loop: frame by frame       {_rate(n, best['observe'])})")
+    print(f"  UKF step                         {_rate(n, best['ukf'])}")
+    verdict = "PASS" if n / total >= TARGET_FRAMES_PER_S else "MISS"
+    print(
+        f"  replay through the UKF           {_rate(n, total)}  target"
+        f" {TARGET_FRAMES_PER_S:.0f}: {verdict}"
+    )
+    ukf_us = 1e6 * best["ukf"] / n
+    if ukf_us > UKF_BUDGET_US:
+        print(
+            f"  the UKF step alone ({ukf_us:.0f} us) exceeds the {UKF_BUDGET_US:.0f} us budget of"
+            f" the target; reading + reconstruction cost {1e6 * overhead / n:.0f} us/frame"
+            f" ({n / overhead:.0f} frames/s without the UKF)"
+        )
+
+
+def bench_images(directory: Path, configurations: int) -> None:
+    from tracker.segmentation import PairSegmenter
+
+    settings = ProtocolSettings(
+        images=True,
+        planes=min(11, configurations),
+        configurations=configurations,
+        frames_per_configuration=20,
+    )
+    path = directory / "images.mcap"
+    started = time.perf_counter()
+    summary = simulate_protocol(settings, path, progress=False)
+    print(
+        f"recording with images: {summary.frames} frame pairs of 640x480, "
+        f"{summary.bytes / 1e6:.0f} MB (written in {time.perf_counter() - started:.1f} s)"
+    )
+    t0 = time.perf_counter()
+    with open_recording(path) as recording:
+        scene = recording_scene(recording)
+        segmenter = PairSegmenter(
+            scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, recording.backgrounds
+        )
+        t_read = t_segment = 0.0
+        frames = []
+        t_last = time.perf_counter()
+        for recorded in recording.frames(images=True):
+            t_mid = time.perf_counter()
+            f = recorded.frame
+            frames.append(segmenter.segment(f.images).frame(f.time_s, f.q, f.q_dot))
+            t_end = time.perf_counter()
+            t_read += t_mid - t_last
+            t_segment += t_end - t_mid
+            t_last = t_end
+    t1 = time.perf_counter()
+    reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
+    observations = observations_batch(reconstructor, frames)
+    ukf = make_estimator("ukf", scene.catheter)
+    for observation in observations:
+        ukf.step(observation)
+    t2 = time.perf_counter()
+    n = len(frames)
+    print(f"  read and decode both images      {_rate(n, t_read)}")
+    print(f"  segmentation of both views       {_rate(n, t_segment)}")
+    print(f"  reconstruction and UKF           {_rate(n, t2 - t1)}")
+    print(f"  replay from images               {_rate(n, t2 - t0)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller recordings")
+    args = parser.parse_args()
+    print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+    with tempfile.TemporaryDirectory() as tmp, single_blas_thread():
+        directory = Path(tmp)
+        bench_markers(directory, 22 if args.quick else 94)
+        bench_images(directory, 4 if args.quick else 11)
+
+
+if __name__ == "__main__":
+    main()

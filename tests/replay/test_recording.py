@@ -1,0 +1,512 @@
+"""Recordings (replay.recording): round trip, other readers, crash safety and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import struct
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+from replay import recording as rec
+from replay.recording import (
+    FrameLabels,
+    MarkerQuality,
+    RecordingError,
+    RecordingWriter,
+    open_recording,
+    rig_toml,
+)
+from replay.render import default_render_rig
+from tracker.observation import Estimate, Flag
+from tracker.pipeline import Frame
+
+RIG = default_render_rig()
+R_W_B, O_B_W = np.eye(3), np.array([0.0, 0.0, -15.0])
+MODEL_TOML = DEFAULT_MODEL_PATH.read_text()
+RIG_TOML = rig_toml(RIG, R_W_B, O_B_W)
+CATHETER = load_catheter(DEFAULT_MODEL_PATH)
+P = 1 + len(CATHETER.marker_arclengths_mm)  # points per view: the tip, then the markers
+
+
+def _joints(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    q = np.column_stack([0.3 + 0.2 * np.sin(t), 0.6 + 0.1 * t, -0.4 + 0.05 * np.cos(3 * t)])
+    q_dot = np.column_stack([0.2 * np.cos(t), np.full_like(t, 0.1), -0.15 * np.sin(3 * t)])
+    return q, q_dot
+
+
+def _frames(n: int, rng: np.random.Generator, images: bool) -> list[Frame]:
+    """n frames at 20 Hz; their joint values are those of the 1 kHz grid of _write."""
+    q_grid, q_dot_grid = _joints(np.arange(50 * n + 50) / 1000.0)
+    frames = []
+    for k in range(n):
+        t = 0.05 * k
+        q, q_dot = q_grid[50 * k : 50 * k + 1], q_dot_grid[50 * k : 50 * k + 1]
+        uv_f = rng.uniform(0, 640, (P, 2))
+        uv_s = rng.uniform(0, 640, (P, 2))
+        cov = np.tile(np.diag(rng.uniform(0.1, 2.0, 2)), (P, 1, 1))
+        if k % 7 == 3:  # a point not found in the side view
+            uv_s[-1] = np.nan
+        pair = None
+        if images:
+            pair = tuple(rng.integers(0, 256, (48, 64), dtype=np.uint8) for _ in range(2))
+        frames.append(
+            Frame(
+                time_s=t,
+                q=q[0],
+                q_dot=q_dot[0],
+                uv_front=uv_f,
+                uv_side=uv_s,
+                cov_front=cov,
+                cov_side=cov.copy(),
+                images=pair,
+                delta_L_true_rad=float(rng.uniform(-np.pi, np.pi)),
+            )
+        )
+    return frames
+
+
+def _write(path: Path, frames: list[Frame], joint_rate_hz: float = 1000.0, **kwargs) -> dict:
+    """A recording of the frames with joints at joint_rate_hz over their time span."""
+    t_joint = np.arange(50 * len(frames) + 50) / joint_rate_hz
+    q, q_dot = _joints(t_joint)
+    labels = [
+        FrameLabels(
+            plane=k // 10,
+            configuration=k // 5,
+            deflection_mm=1.5 * (k % 2),
+            noise_level=0.5,
+            delta_1_true_rad=0.25,
+        )
+        for k in range(len(frames))
+    ]
+    quality = (MarkerQuality(0, (), 2.1), MarkerQuality(272, ("MARKER_MISSING", "OVERLAP"), 2.3))
+    settings = {"protocol": "test", "nested": {"a": [1, 2.5]}}
+    estimates = []
+    with RecordingWriter(
+        path, model_toml=MODEL_TOML, rig_toml=RIG_TOML, settings=settings, **kwargs
+    ) as writer:
+        if frames[0].images is not None:
+            writer.write_background("front", frames[0].images[0])
+            writer.write_background("side", frames[0].images[1])
+        j = 0
+        for k, frame in enumerate(frames):
+            upto = int(np.searchsorted(t_joint, frame.time_s + 1e-12, side="right"))
+            writer.write_joints(t_joint[j:upto], q[j:upto], q_dot[j:upto])
+            j = upto
+            writer.write_frame(frame, labels[k], quality)
+            estimate = Estimate(
+                time_s=frame.time_s,
+                delta_L_rad=0.1 * k,
+                std_rad=0.01,
+                q_r_rad=float(frame.q[0]),
+                flags=Flag.PARTIAL | Flag.HELD,
+                informative_radius_mm=7.5,
+                nis=1.5,
+                nis_dof=3,
+            )
+            writer.write_estimate("ukf", estimate)
+            estimates.append(estimate)
+        writer.write_joints(t_joint[j:], q[j:], q_dot[j:])
+    return dict(
+        t_joint=t_joint,
+        q=q,
+        q_dot=q_dot,
+        labels=labels,
+        quality=quality,
+        settings=settings,
+        estimates=estimates,
+    )
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    rng = np.random.default_rng(7)
+    frames = _frames(40, rng, images=True)
+    path = tmp_path_factory.mktemp("rec") / "round.mcap"
+    written = _write(path, frames)
+    return path, frames, written
+
+
+# ------------------------------------------------------------------------------ round trip
+def test_round_trip_is_identical(recorded):
+    path, frames, written = recorded
+    with open_recording(path) as r:
+        assert r.report.warnings == []
+        assert r.metadata.format_version == rec.FORMAT_VERSION
+        assert r.metadata.model_toml == MODEL_TOML
+        assert r.metadata.rig_toml == RIG_TOML
+        assert r.metadata.settings == written["settings"]
+        # joint values: every sample, bit for bit
+        np.testing.assert_array_equal(r.joints.q, written["q"])
+        np.testing.assert_array_equal(r.joints.q_dot, written["q_dot"])
+        np.testing.assert_array_equal(
+            np.round(r.joints.time_s * 1e9), np.round(written["t_joint"] * 1e9)
+        )
+        out = list(r.frames())
+        assert len(out) == len(frames) == r.report.frames
+        for k, (got, sent) in enumerate(zip(out, frames, strict=True)):
+            f = got.frame
+            assert isinstance(f, Frame)
+            assert math.isclose(f.time_s, sent.time_s, abs_tol=1e-9)
+            np.testing.assert_array_equal(f.uv_front, sent.uv_front)
+            np.testing.assert_array_equal(f.uv_side, sent.uv_side)  # NaN rows included
+            np.testing.assert_array_equal(f.cov_front, sent.cov_front)
+            np.testing.assert_array_equal(
+                f.cov_side[~np.isnan(sent.uv_side[:, 0])],
+                sent.cov_side[~np.isnan(sent.uv_side[:, 0])],
+            )
+            np.testing.assert_array_equal(f.images[0], sent.images[0])
+            np.testing.assert_array_equal(f.images[1], sent.images[1])
+            # the frame is on the joint grid: its joint values are the samples', exactly
+            np.testing.assert_array_equal(f.q, sent.q)
+            np.testing.assert_array_equal(f.q_dot, sent.q_dot)
+            assert f.delta_L_true_rad == sent.delta_L_true_rad
+            assert got.labels == written["labels"][k]
+            assert got.quality == written["quality"]
+        np.testing.assert_array_equal(r.backgrounds[0], frames[0].images[0])
+        est = r.estimates["ukf"]
+        assert len(est) == len(written["estimates"])
+        for got, sent in zip(est, written["estimates"], strict=True):
+            # times are stored in integer ns
+            assert math.isclose(got.time_s, sent.time_s, abs_tol=1e-9)
+            assert replace(got.estimate, time_s=sent.time_s) == sent
+        rig, R_w_b, o_b_w = r.rig()
+        np.testing.assert_array_equal(rig.front.K, RIG.front.K)
+        np.testing.assert_array_equal(o_b_w, O_B_W)
+        assert r.catheter().marker_arclengths_mm == CATHETER.marker_arclengths_mm
+
+
+def test_joints_are_interpolated_to_frame_times(tmp_path):
+    """Frames between joint samples get linearly interpolated joints and, without recorded
+    rates, the slope between the bracketing samples."""
+    path = tmp_path / "interp.mcap"
+    t_joint = np.arange(0, 2.0, 0.001)
+    a, b = np.array([0.1, -0.2, 0.3]), np.array([0.5, 0.25, -0.125])
+    frame_times = np.arange(0.0103, 1.9, 0.05)
+    with RecordingWriter(path, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
+        j = 0
+        for t in frame_times:
+            upto = int(np.searchsorted(t_joint, t, side="right")) + 1
+            writer.write_joints(t_joint[j:upto], a + np.outer(t_joint[j:upto], b))
+            j = upto
+            uv = np.full((P, 2), 100.0)
+            frame = Frame(
+                t,
+                np.zeros(3),
+                None,
+                uv,
+                uv,
+                np.tile(np.eye(2), (P, 1, 1)),
+                np.tile(np.eye(2), (P, 1, 1)),
+            )
+            writer.write_frame(frame)
+        writer.write_joints(t_joint[j:], a + np.outer(t_joint[j:], b))
+    with open_recording(path) as r:
+        assert r.joints.q_dot is None
+        frames = [x.frame for x in r.frames()]
+    assert len(frames) == frame_times.size
+    for f, t in zip(frames, frame_times, strict=True):
+        np.testing.assert_allclose(f.q, a + t * b, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(f.q_dot, b, rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ other readers
+def _validate(value, schema: dict, where: str) -> None:
+    """The subset of JSON Schema the documented schemas use."""
+    types = schema.get("type")
+    if types is not None:
+        types = [types] if isinstance(types, str) else types
+        python = {
+            "object": dict,
+            "array": list,
+            "string": str,
+            "null": type(None),
+            "integer": int,
+            "number": (int, float),
+        }
+        ok = any(
+            isinstance(value, python[t])
+            and not (t in ("integer", "number") and isinstance(value, bool))
+            for t in types
+        )
+        assert ok, f"{where}: {value!r} is not {types}"
+    if isinstance(value, dict):
+        for key in schema.get("required", []):
+            assert key in value, f"{where}: missing {key}"
+        for key, sub in schema.get("properties", {}).items():
+            if key in value:
+                _validate(value[key], sub, f"{where}.{key}")
+    if isinstance(value, list) and "items" in schema:
+        assert len(value) >= schema.get("minItems", 0)
+        assert len(value) <= schema.get("maxItems", 10**9)
+        for k, item in enumerate(value):
+            _validate(item, schema["items"], f"{where}[{k}]")
+    if "enum" in schema:
+        assert value in schema["enum"]
+
+
+def _documented_schemas() -> dict[str, dict]:
+    """The JSON schemas printed in docs/recording.md, by name."""
+    doc = (Path(__file__).parents[2] / "docs" / "recording.md").read_text()
+    found = re.findall(r"### `([\w.]+)`\n\n```json\n(.*?)\n```", doc, flags=re.S)
+    return {name: json.loads(text) for name, text in found}
+
+
+def test_mcap_reader_reads_every_channel_with_the_documented_schemas(recorded):
+    """The plain ``mcap`` reader, the schemas in the file and docs/recording.md suffice."""
+    from mcap.reader import make_reader
+
+    path, frames, _ = recorded
+    documented = _documented_schemas()
+    assert set(documented) == set(rec.SCHEMAS)
+    doc = (Path(__file__).parents[2] / "docs" / "recording.md").read_text()
+    seen: dict[str, int] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary.statistics.message_count > 0
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        for schema, channel, message in reader.iter_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            assert schema.name in doc, f"schema {schema.name} is not documented"
+            if schema.encoding == "jsonschema":
+                assert channel.message_encoding == "json"
+                assert json.loads(schema.data) == documented[schema.name]
+                _validate(json.loads(message.data), documented[schema.name], channel.topic)
+            else:
+                assert (schema.name, schema.encoding, channel.message_encoding) == (
+                    "foxglove.RawImage",
+                    "protobuf",
+                    "protobuf",
+                )
+                # the documented field numbers: 2 width, 3 height, 4 encoding, 5 step, 6 data
+                image = rec.decode_image(message.data)
+                assert image.dtype == np.uint8 and image.shape == (48, 64)
+    assert metadata["cathtrack"]["format_version"] == str(rec.FORMAT_VERSION)
+    assert set(metadata) == {"cathtrack", "model", "rig", "settings"}
+    for topic in (
+        "/joints",
+        "/markers/front",
+        "/markers/side",
+        "/truth",
+        "/estimates/ukf",
+        "/camera/front/image",
+        "/camera/side/image",
+        "/camera/front/background",
+    ):
+        assert seen.get(topic, 0) > 0, topic
+    assert seen["/camera/front/image"] == len(frames)
+
+
+def test_rerun_reads_the_images(recorded):
+    """rerun's own MCAP loader turns the camera channels into images (no mock)."""
+    from rerun.chunk import McapReader
+
+    path, frames, _ = recorded
+    reader = McapReader(path, timeline_type="duration_ns")
+    images = {}
+    for chunk in reader.stream():
+        batch = chunk.to_record_batch()
+        # a static chunk per channel describes it (McapChannel, McapSchema); the messages
+        # come in chunks of Image components
+        if chunk.entity_path != "/camera/front/image" or "Image:buffer" not in batch.schema.names:
+            continue
+        times = batch.column("message_log_time").cast("int64").to_pylist()
+        buffers = batch.column("Image:buffer").to_pylist()
+        for t, buffer in zip(times, buffers, strict=True):
+            images[t] = np.asarray(buffer[0], dtype=np.uint8)
+    assert len(images) == len(frames)
+    for frame in frames:
+        got = images[int(round(frame.time_s * 1e9))]
+        np.testing.assert_array_equal(got.reshape(48, 64), frame.images[0])
+
+
+# ------------------------------------------------------------------------------ crash safety
+def test_chunks_span_at_most_a_second_and_a_crash_loses_at_most_that(tmp_path):
+    from mcap.reader import make_reader
+
+    rng = np.random.default_rng(3)
+    frames = _frames(100, rng, images=False)  # 5 s at 20 Hz, joints at 1 kHz
+    path = tmp_path / "chunks.mcap"
+    _write(path, frames)
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 5
+    assert max(c.message_end_time - c.message_start_time for c in chunks) < 1_000_000_000
+    # A crash at t = 3.5 s: what is on disk while the writer is still open.
+    crash = tmp_path / "crash.mcap"
+    writer = RecordingWriter(
+        path.with_suffix(".live.mcap"), model_toml=MODEL_TOML, rig_toml=RIG_TOML
+    )
+    try:
+        for frame in frames:
+            if frame.time_s > 3.5:
+                break
+            writer.write_joints(frame.time_s, frame.q, frame.q_dot)
+            writer.write_frame(frame)
+        shutil.copyfile(path.with_suffix(".live.mcap"), crash)
+    finally:
+        writer.close()
+    with open_recording(crash) as r:
+        assert r.report.truncated
+        kept = r.frame_times_s()
+    assert kept.size > 0 and kept.max() >= 3.5 - 1.0 - 1e-9
+
+
+# ------------------------------------------------------------------------------ bad input
+def _one(warnings: list[str], word: str) -> str:
+    hits = [w for w in warnings if word in w]
+    assert len(hits) == 1, (word, warnings)
+    return hits[0]
+
+
+def test_truncated_file_keeps_the_readable_part(recorded, tmp_path):
+    path, frames, _ = recorded
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(0.6 * len(data))])
+    with open_recording(cut) as r:
+        message = _one(r.report.warnings, "truncated")
+        assert "lost" in message and r.report.truncated
+        assert 0 < r.report.lost_seconds <= 1.0
+        out = list(r.frames())
+    assert 0 < len(out) < len(frames)
+    # what was read is exactly the beginning of the session
+    for got, sent in zip(out, frames, strict=False):
+        np.testing.assert_array_equal(got.frame.uv_front, sent.uv_front)
+        np.testing.assert_array_equal(got.frame.images[1], sent.images[1])
+
+
+def test_not_mcap_and_unknown_version_and_missing_joints(tmp_path, monkeypatch):
+    text = tmp_path / "notes.txt"
+    text.write_text("this is not a recording\n")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        open_recording(text)
+    with pytest.raises(RecordingError, match="cannot read recording"):
+        open_recording(tmp_path / "absent.mcap")
+    rng = np.random.default_rng(5)
+    frames = _frames(5, rng, images=False)
+    future = tmp_path / "future.mcap"
+    monkeypatch.setattr(rec, "FORMAT_VERSION", 99)
+    _write(future, frames)
+    monkeypatch.undo()
+    with pytest.raises(RecordingError, match="unknown recording format version '99'"):
+        open_recording(future)
+    no_joints = tmp_path / "no_joints.mcap"
+    with RecordingWriter(no_joints, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
+        for frame in frames:
+            writer.write_frame(frame)
+    with pytest.raises(RecordingError, match="missing channel /joints"):
+        open_recording(no_joints)
+
+
+def test_missing_view_channel_keeps_the_other_view(tmp_path):
+    rng = np.random.default_rng(6)
+    frames = _frames(20, rng, images=False)
+    path = tmp_path / "front_only.mcap"
+    with RecordingWriter(path, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
+        for frame in frames:
+            writer.write_joints(frame.time_s, frame.q, frame.q_dot)
+            writer.write_raw(
+                "/markers/front",
+                int(round(frame.time_s * 1e9)),
+                rec.encode_json(
+                    {
+                        "view": "front",
+                        "unit": "px",
+                        "uv": frame.uv_front.tolist(),
+                        "cov": frame.cov_front.tolist(),
+                    }
+                ),
+            )
+    with open_recording(path) as r:
+        _one(r.report.warnings, "/markers/side")
+        _one(r.report.warnings, "/truth")
+        out = list(r.frames())
+    assert len(out) == len(frames)
+    assert all(np.isnan(x.frame.uv_side).all() for x in out)
+    np.testing.assert_array_equal(out[4].frame.uv_front, frames[4].uv_front)
+
+
+def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_path):
+    rng = np.random.default_rng(8)
+    frames = _frames(30, rng, images=False)
+    path = tmp_path / "messy.mcap"
+    order = list(range(30))
+    order[10], order[11], order[12] = 12, 10, 11  # out of order
+    with RecordingWriter(path, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
+        t_joint = np.arange(0, 1.6, 0.001)
+        q, q_dot = _joints(t_joint)
+        q[500] = np.nan  # one NaN joint sample
+        writer.write_joints(t_joint, q, q_dot)
+        for k in order:
+            writer.write_frame(frames[k])
+        writer.write_frame(replace(frames[20], uv_front=frames[20].uv_front + 1.0))  # duplicate
+        stamp = int(round(frames[25].time_s * 1e9))
+        nan_uv = frames[25].uv_front.copy()
+        nan_uv[0] = [float("nan"), 1.0]
+        writer.write_raw(
+            "/markers/front",
+            stamp + 1,
+            json.dumps(  # NaN written by another tool
+                {
+                    "view": "front",
+                    "unit": "px",
+                    "uv": nan_uv.tolist(),
+                    "cov": frames[25].cov_front.tolist(),
+                }
+            ).encode(),
+        )
+        # messages that do not fit their schema: skipped, the rest is read
+        writer.write_raw("/joints", int(1.7e9), b'{"time_ns": [1700000000], "q": [[1, 2]]}')
+        writer.write_raw("/truth", stamp + 2, b"[1, 2, 3]")
+    with open_recording(path) as r:
+        warnings = r.report.warnings
+        _one(warnings, "out of time order")
+        duplicate = _one(warnings, "repeat an earlier time stamp")
+        assert "/markers/front" in duplicate or "/truth" in duplicate or "markers" in duplicate
+        _one(warnings, "NaN or infinite")
+        _one(warnings, "joint sample(s) hold NaN")
+        malformed = _one(warnings, "do not match their schema")
+        assert "/joints" in malformed and "/truth" in malformed
+        out = list(r.frames())
+    times = [x.frame.time_s for x in out]
+    assert times == sorted(times)
+    assert len(out) == 31  # 30 frames and the extra NaN frame: nothing lost
+    by_time = {round(x.frame.time_s * 1e9): x.frame for x in out}
+    np.testing.assert_array_equal(
+        by_time[round(frames[20].time_s * 1e9)].uv_front, frames[20].uv_front
+    )  # the first of the duplicates
+    nan_frame = by_time[stamp + 1]
+    assert np.isnan(nan_frame.uv_front[0]).all() and np.isfinite(nan_frame.uv_front[1:]).all()
+    # the joint value next to the dropped NaN sample is interpolated from its neighbours
+    assert r.joints.time_s.size == t_joint.size - 1
+
+
+def test_corrupt_chunk_is_skipped_and_the_rest_is_read(recorded, tmp_path):
+    path, frames, _ = recorded
+    data = bytearray(path.read_bytes())
+    # flip bytes inside the third chunk's compressed data
+    offset, seen = 8, 0
+    while offset < len(data):
+        opcode, length = struct.unpack_from("<BQ", data, offset)
+        if opcode == 6:
+            seen += 1
+            if seen == 3:
+                middle = offset + 9 + length // 2
+                data[middle : middle + 16] = bytes(16)
+                break
+        offset += 9 + length
+    bad = tmp_path / "corrupt.mcap"
+    bad.write_bytes(bytes(data))
+    with open_recording(bad) as r:
+        _one(r.report.warnings, "corrupt chunk")
+        n = len(list(r.frames()))
+    assert 0 < n < len(frames)

@@ -1,0 +1,311 @@
+"""Datagram layouts and the UDP receivers/sender, over real loopback sockets."""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+
+import numpy as np
+import pytest
+
+from tracker.observation import Estimate, Flag
+from tracker.udp import (
+    ESTIMATE_STRUCT,
+    JOINT_MAGIC,
+    JOINT_STRUCT,
+    MARKER_MAGIC,
+    DatagramError,
+    EstimateSender,
+    JointFlags,
+    JointPacket,
+    JointReceiver,
+    JointStatus,
+    MarkerReceiver,
+    SegmentedMarkers,
+    decode_estimate,
+    decode_joints,
+    decode_markers,
+    encode_estimate,
+    encode_joints,
+    encode_markers,
+    encode_segmented,
+    marker_datagram_size,
+)
+
+LOOPBACK = "127.0.0.1"
+
+
+def ramp_q(t):
+    """A linear joint trajectory: exact under linear interpolation."""
+    q_dot = np.array([0.5, -0.2, 0.3])
+    return np.array([0.1, 0.2, -0.3]) + q_dot * t, q_dot
+
+
+@pytest.fixture
+def sender():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        yield sock
+
+
+# ------------------------------------------------------------------------------ layouts
+def test_joint_datagram_round_trip_and_layout():
+    data = encode_joints(7, 1.25, [0.1, 0.2, 0.3], [1.0, 2.0, 3.0])
+    assert len(data) == JOINT_STRUCT.size == 72
+    assert data[:4] == b"CTJV" and struct.unpack_from("<I", data)[0] == JOINT_MAGIC
+    # Every double starts at a multiple of 8 bytes.
+    assert struct.unpack_from("<d", data, 16)[0] == 1.25
+    assert struct.unpack_from("<d", data, 24)[0] == 0.1
+    assert struct.unpack_from("<d", data, 64)[0] == 3.0
+    packet = decode_joints(data)
+    assert packet.sequence == 7 and packet.time_s == 1.25
+    np.testing.assert_array_equal(packet.q, [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(packet.q_dot, [1.0, 2.0, 3.0])
+    assert packet.flags == JointFlags.NONE
+
+
+def test_joint_datagram_without_rates():
+    packet = decode_joints(encode_joints(1, 0.0, [0.0, 0.1, 0.2]))
+    assert packet.flags & JointFlags.NO_RATES
+    assert np.all(np.isnan(packet.q_dot))
+
+
+@pytest.mark.parametrize(
+    "data, reason",
+    [
+        (encode_joints(1, 0.0, [0, 0, 0], [0, 0, 0])[:40], "size"),  # truncated
+        (encode_joints(1, 0.0, [0, 0, 0], [0, 0, 0]) + b"\0", "size"),
+        (b"\x01\x02\x03", "size"),
+        (b"G" * 72, "magic"),
+        (struct.pack("<IHHII7d", JOINT_MAGIC, 2, 0, 1, 0, *[0.0] * 7), "version"),
+        (encode_joints(1, 0.0, [0, math.nan, 0], [0, 0, 0]), "non-finite"),
+        (encode_joints(1, math.inf, [0, 0, 0], [0, 0, 0]), "non-finite"),
+        (encode_joints(1, 0.0, [0, 0, 0], [0, math.inf, 0]), "non-finite"),
+    ],
+)
+def test_joint_decoder_rejects_with_a_reason(data, reason):
+    with pytest.raises(DatagramError) as info:
+        decode_joints(data)
+    assert info.value.reason == reason
+
+
+def test_estimate_datagram_round_trip():
+    estimate = Estimate(
+        time_s=3.5, delta_L_rad=0.4, std_rad=0.01, q_r_rad=2.0, flags=Flag.PARTIAL | Flag.HELD
+    )
+    data = encode_estimate(9, estimate, latency_s=0.002, status=0b101)
+    assert len(data) == ESTIMATE_STRUCT.size == 64 and data[:4] == b"CTES"
+    message = decode_estimate(data)
+    assert message.sequence == 9 and message.time_s == 3.5
+    assert message.delta_L_rad == 0.4 and message.std_rad == 0.01 and message.q_r_rad == 2.0
+    assert message.delta_1_rad == pytest.approx(estimate.delta_1_rad)
+    assert message.latency_s == 0.002
+    assert Flag(message.estimator_flags) == Flag.PARTIAL | Flag.HELD
+    assert message.status == 0b101 and message.valid
+
+    invalid = Estimate(3.6, math.nan, math.nan, 2.0, Flag.NO_MEASUREMENT)
+    message = decode_estimate(encode_estimate(10, invalid, 0.001))
+    assert not message.valid and math.isnan(message.delta_1_rad)
+    with pytest.raises(DatagramError):
+        decode_estimate(data[:-1])
+
+
+def test_marker_datagram_round_trip_with_missing_points():
+    uv_f = np.array([[1.0, 2.0], [np.nan, np.nan], [5.0, 6.0]])
+    uv_s = np.array([[7.0, 8.0], [9.0, 10.0], [11.0, 12.0]])
+    data = encode_markers(4, 0.5, uv_f, uv_s, [0.5, 0.5, 2.0], 1.5)
+    assert len(data) == marker_datagram_size(3) == 24 + 48 * 3
+    assert struct.unpack_from("<I", data)[0] == MARKER_MAGIC
+    markers = decode_markers(data, n_points=3)
+    assert markers.sequence == 4 and markers.time_s == 0.5
+    np.testing.assert_array_equal(markers.uv_front, uv_f)
+    np.testing.assert_array_equal(markers.uv_side, uv_s)
+    np.testing.assert_allclose(markers.cov_front[2], 4.0 * np.eye(2))
+    np.testing.assert_allclose(markers.cov_side[0], 2.25 * np.eye(2))
+    assert np.all(np.isnan(markers.cov_front[1]))
+    again = decode_markers(encode_segmented(markers))
+    np.testing.assert_allclose(again.cov_front[[0, 2]], markers.cov_front[[0, 2]])
+
+
+@pytest.mark.parametrize(
+    "mutate, reason",
+    [
+        (lambda d: d[:-8], "size"),
+        (lambda d: d[:10], "size"),
+        (lambda d: b"XXXX" + d[4:], "magic"),
+        (lambda d: d[:12] + struct.pack("<H", 0) + d[14:], "points"),
+        (lambda d: d[:40] + struct.pack("<d", -1.0) + d[48:], "sigma"),
+        (lambda d: d[:24] + struct.pack("<d", math.inf) + d[32:], "non-finite"),
+    ],
+)
+def test_marker_decoder_rejects_with_a_reason(mutate, reason):
+    data = encode_markers(1, 0.0, np.ones((3, 2)), np.ones((3, 2)), 1.0, 1.0)
+    with pytest.raises(DatagramError) as info:
+        decode_markers(mutate(data))
+    assert info.value.reason == reason
+
+
+def test_marker_decoder_checks_the_point_count():
+    data = encode_markers(1, 0.0, np.ones((2, 2)), np.ones((2, 2)), 1.0, 1.0)
+    with pytest.raises(DatagramError, match="catheter has 3"):
+        decode_markers(data, n_points=3)
+
+
+# --------------------------------------------------------------------------- receiving
+def test_joint_receiver_orders_counts_and_interpolates(sender):
+    with JointReceiver(port=0, clock="sender", stale_after_s=0.05) as receiver:
+        address = receiver.address
+        assert address[0] == LOOPBACK
+        times = np.arange(0, 50) * 1e-3
+        for k, t in enumerate(times):
+            sender.sendto(encode_joints(k, t, *ramp_q(t)), address)
+            if k == 20:
+                sender.sendto(encode_joints(20, t, *ramp_q(t)), address)  # duplicate
+                sender.sendto(encode_joints(15, times[15], *ramp_q(times[15])), address)  # stale
+                sender.sendto(b"garbage", address)
+                sender.sendto(encode_joints(k, t, *ramp_q(t))[:30], address)  # truncated
+        assert receiver.poll() == 50
+        counts = receiver.counts
+        assert (counts.received, counts.accepted) == (54, 50)
+        assert (counts.duplicate, counts.stale, counts.malformed) == (1, 1, {"size": 2})
+        assert receiver.newest.sequence == 49
+
+        for t in (0.0, 0.0123, 0.02, 0.0487, 0.049):
+            sample = receiver.sample(t)
+            assert sample.status is JointStatus.OK
+            q, q_dot = ramp_q(t)
+            np.testing.assert_allclose(sample.q, q, atol=1e-12)
+            np.testing.assert_allclose(sample.q_dot, q_dot, atol=1e-12)
+        held = receiver.sample(0.049 + 0.03)
+        assert held.status is JointStatus.HELD and held.age_s == pytest.approx(0.03)
+        np.testing.assert_allclose(held.q, ramp_q(0.049)[0])
+        assert receiver.sample(0.049 + 0.2).status is JointStatus.STALE
+        assert receiver.sample(-0.01).status is JointStatus.CLAMPED
+        assert receiver.sample(-1.0).status is JointStatus.STALE
+        assert receiver.poll() == 0  # nothing pending: returns at once
+
+
+def test_joint_receiver_without_samples():
+    with JointReceiver(port=0) as receiver:
+        sample = receiver.sample(1.0)
+        assert sample.status is JointStatus.NONE and not sample.usable
+        assert np.all(np.isnan(sample.q))
+
+
+def test_joint_history_is_bounded_and_stays_ordered():
+    receiver = JointReceiver(port=None, clock="sender", history=100)
+    for k in range(5000):
+        t = k * 1e-3
+        receiver.add(JointPacket(k, t, *ramp_q(t)), arrival_s=t)
+    assert len(receiver) == 100
+    times = receiver.sample_times()
+    np.testing.assert_allclose(times, np.arange(4900, 5000) * 1e-3)
+    np.testing.assert_allclose(receiver.sample(4.95).q, ramp_q(4.95)[0], atol=1e-12)
+    assert receiver.sample(4.0).status is JointStatus.STALE  # older than the history
+
+
+def test_sequence_wraps_around_and_a_restart_clears_the_history():
+    receiver = JointReceiver(port=None, clock="sender", restart_gap=100)
+    top = 2**32
+    for k, seq in enumerate([top - 2, top - 1, 0, 1]):
+        assert receiver.add(JointPacket(seq, k * 1e-3, *ramp_q(k * 1e-3)), k * 1e-3) == 1
+    assert receiver.add(JointPacket(top - 1, 0.01, *ramp_q(0.01)), 0.01) == 0  # behind: stale
+    assert receiver.counts.stale == 1
+    # The controller restarted: sequence and time start again.
+    assert receiver.add(JointPacket(5, 0.0, *ramp_q(0.0)), 1.0) == 0  # within the gap: stale
+    receiver.add(JointPacket(top - 500, 0.0, *ramp_q(0.0)), 1.0)
+    assert receiver.counts.restarts == 1 and len(receiver) == 1
+
+
+def test_time_that_does_not_increase_is_stale():
+    receiver = JointReceiver(port=None, clock="sender")
+    receiver.add(JointPacket(1, 1.0, *ramp_q(1.0)), 0.0)
+    assert receiver.add(JointPacket(2, 1.0, *ramp_q(1.0)), 0.0) == 0
+    assert receiver.counts.stale == 1
+
+
+def test_rates_from_values_when_not_sent():
+    receiver = JointReceiver(port=None, clock="sender")
+    for k in range(100):
+        t = k * 1e-3
+        receiver.add_datagram(encode_joints(k, t, ramp_q(t)[0]), arrival_s=t)
+    sample = receiver.sample(0.05)
+    np.testing.assert_allclose(sample.q_dot, ramp_q(0.05)[1], atol=1e-9)
+
+
+def test_aligned_clock_removes_the_offset_and_the_network_jitter():
+    rng = np.random.default_rng(0)
+    receiver = JointReceiver(port=None, clock="aligned")
+    sender_times = np.arange(200) * 1e-3
+    jitter = rng.exponential(2e-4, sender_times.size)
+    jitter[17] = 0.0  # the fastest datagram fixes the offset
+    for k, t in enumerate(sender_times):
+        receiver.add(JointPacket(k, t, *ramp_q(t)), arrival_s=t + 100.0 + jitter[k])
+    np.testing.assert_allclose(receiver.sample_times(), sender_times + 100.0, atol=1e-12)
+    np.testing.assert_allclose(receiver.sample(100.1).q, ramp_q(0.1)[0], atol=1e-12)
+    arrival = JointReceiver(port=None, clock="arrival")
+    arrival.add(JointPacket(1, 0.5, *ramp_q(0.5)), arrival_s=42.0)
+    assert arrival.sample_times()[0] == 42.0
+
+
+def test_receiver_settings_are_checked():
+    with pytest.raises(ValueError, match="clock"):
+        JointReceiver(port=None, clock="wall")
+    with pytest.raises(ValueError, match="history"):
+        JointReceiver(port=None, history=1)
+
+
+def test_port_in_use_is_one_clear_error():
+    with JointReceiver(port=0) as first:
+        port = first.address[1]
+        with pytest.raises(OSError, match=f"127.0.0.1:{port}"):
+            JointReceiver(port=port)
+
+
+def test_estimate_sender_reaches_a_listener_and_never_raises():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as controller:
+        controller.bind((LOOPBACK, 0))
+        controller.settimeout(5.0)
+        with EstimateSender(controller.getsockname()) as out:
+            estimate = Estimate(1.0, 0.3, 0.02, 0.1)
+            out.handle(None, None, estimate, 0.004, status=2)
+            out.handle(None, None, estimate, 0.005)
+            first = decode_estimate(controller.recv(128))
+            second = decode_estimate(controller.recv(128))
+        assert (first.sequence, second.sequence) == (0, 1)
+        assert first.status == 2 and first.latency_s == 0.004 and first.delta_L_rad == 0.3
+    reports = []
+    with EstimateSender((LOOPBACK, 0), report=reports.append) as broken:  # port 0: EINVAL
+        broken.send(estimate, 0.0)
+        broken.send(estimate, 0.0)
+        assert broken.errors == 2 and broken.sent == 0
+    assert len(reports) == 1 and "127.0.0.1:0" in reports[0]
+
+
+def test_marker_receiver_counts_bad_datagrams_and_joins_joints(sender):
+    with MarkerReceiver(port=0, n_points=3) as markers, JointReceiver(
+        port=0, clock="sender"
+    ) as joints:
+        for k in range(101):
+            t = k * 1e-3
+            sender.sendto(encode_joints(k, t, *ramp_q(t)), joints.address)
+        uv = np.arange(6.0).reshape(3, 2)
+        sender.sendto(encode_markers(0, 0.05, uv, uv + 1, 0.5, 0.5), markers.address)
+        sender.sendto(b"not a marker datagram" * 8, markers.address)
+        sender.sendto(encode_markers(1, 0.06, uv[:2], uv[:2], 0.5, 0.5), markers.address)
+        sender.sendto(encode_markers(2, 0.07, uv, uv, 0.5, 0.5), markers.address)
+        frames = list(markers.frames(joints, idle_timeout_s=0.2))
+        assert [f.time_s for f in frames] == [0.05, 0.07]
+        np.testing.assert_allclose(frames[0].q, ramp_q(0.05)[0], atol=1e-12)
+        np.testing.assert_array_equal(frames[0].uv_side, uv + 1)
+        np.testing.assert_allclose(frames[0].cov_front, np.tile(0.25 * np.eye(2), (3, 1, 1)))
+        assert markers.counts.malformed == {"magic": 1, "points": 1}
+        assert markers.counts.accepted == 2
+
+
+def test_segmented_markers_become_a_frame():
+    uv = np.zeros((3, 2))
+    cov = np.tile(np.eye(2), (3, 1, 1))
+    frame = SegmentedMarkers(1.0, uv, uv, cov, cov).frame([0.0, 0.1, 0.2], None)
+    assert frame.time_s == 1.0 and frame.q_dot is None
+    np.testing.assert_array_equal(frame.q, [0.0, 0.1, 0.2])

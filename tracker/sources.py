@@ -1,0 +1,399 @@
+"""Frame sources of the live loop (DESIGN.md sections 6 and 7).
+
+A source is an iterable of items, each one of
+
+- :class:`ImagePair` ``(time_s, image_front, image_side)``: grayscale images to segment;
+- :class:`tracker.udp.SegmentedMarkers`: points segmented elsewhere, without joint values;
+- :class:`tracker.pipeline.Frame`: a complete frame (simulation, recordings);
+- ``None``: nothing arrived within the source's poll interval (lets the loop drain the
+  joint socket, honour Ctrl-C and time out while idle).
+
+A source may set ``time_is_monotonic = True`` when its item times are ``time.monotonic()``
+stamps of this process (live cameras): the loop then measures latency from the image time
+stamp; otherwise from the moment the item left the source. A source may have ``close()``;
+the loop calls it on exit.
+
+Sources here: two cameras or video files through OpenCV (:class:`VideoSource`), segmented
+markers over UDP (:class:`UdpMarkerSource`), a simulated session (:func:`simulated_session`,
+:class:`SimulatedSource`, :class:`RenderedSource`), and :class:`PacedSource`, which releases
+any time-stamped items (e.g. the frames of a recording) at real time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from models.catheter import Catheter, default_catheter
+from models.imaging import BiplaneRig, default_orthographic_rig
+from tracker.pipeline import Frame
+from tracker.udp import MarkerReceiver, SegmentedMarkers
+
+Array = np.ndarray
+
+
+class ImagePair(NamedTuple):
+    """A synchronised pair of grayscale images (uint8, (h, w)) and its time stamp, s."""
+
+    time_s: float
+    image_front: Array
+    image_side: Array
+
+
+Item = ImagePair | SegmentedMarkers | Frame | None
+
+
+# ------------------------------------------------------------------------------------ pacing
+class PacedSource:
+    """Releases time-stamped items at real time (or ``speed`` times faster).
+
+    Works with anything that has ``time_s``: the frames of a simulation or of a recording,
+    image pairs, segmented markers. The first item is released at once and item ``k`` at
+    ``(time_k - time_0) / speed`` seconds after it; ``speed=None`` releases them as fast as the
+    loop takes them.
+
+    Parameters
+    ----------
+    items : iterable
+    speed : float or None
+    monotonic, sleep : callables
+        Clock and sleep (tests may substitute them).
+    """
+
+    time_is_monotonic = False
+
+    def __init__(
+        self,
+        items: Iterable,
+        speed: float | None = 1.0,
+        monotonic: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        if speed is not None and not speed > 0:
+            raise ValueError(f"speed must be positive (None: as fast as possible), got {speed}")
+        self.items = items
+        self.speed = speed
+        self.monotonic = monotonic
+        self.sleep = sleep
+
+    def __iter__(self) -> Iterator:
+        start = first = None
+        for item in self.items:
+            if item is not None and self.speed is not None:
+                if start is None:
+                    start, first = self.monotonic(), float(item.time_s)
+                due = start + (float(item.time_s) - first) / self.speed
+                wait = due - self.monotonic()
+                if wait > 0:
+                    self.sleep(wait)
+            yield item
+
+
+# -------------------------------------------------------------------------------- simulation
+@dataclass(frozen=True)
+class SimulatedSession:
+    """A simulated session: the scene, the commanded joints, the true delta_L and the frames."""
+
+    scene: object  # replay.simulator.Scene
+    trajectory: object  # replay.simulator.JointTrajectory
+    delta_L_true_rad: Array  # (T,)
+    frames: list[Frame]
+
+
+# The demo's motion: bending sweeps while the base turns back and forth (q_r rad, q_p, q_d mm).
+SESSION_MEAN = (0.0, 0.55, 0.2)
+SESSION_AMPLITUDE = (2.5, 0.35, 0.6)
+SESSION_PERIOD_S = (16.0, 9.0, 6.0)
+
+
+def session_joints(time_s: float | Array) -> tuple[Array, Array]:
+    """Joint values and rates of the simulated session's motion at any time, (..., 3) each.
+
+    The same formula as :func:`replay.simulator.sinusoidal`, for a simulated controller that
+    streams the joints at 1 kHz while the frames come at the image rate.
+    """
+    t = np.asarray(time_s, dtype=float)[..., None]
+    mean, amp = np.asarray(SESSION_MEAN), np.asarray(SESSION_AMPLITUDE)
+    omega = 2 * np.pi / np.asarray(SESSION_PERIOD_S)
+    return mean + amp * np.sin(omega * t), amp * omega * np.cos(omega * t)
+
+
+def simulated_session(
+    duration_s: float = 20.0,
+    frame_rate_hz: float = 20.0,
+    noise: float = 0.5,
+    seed: int = 0,
+    catheter: Catheter | None = None,
+    rig: BiplaneRig | None = None,
+) -> SimulatedSession:
+    """The demo's session: bending sweeps while the base turns, torsion wind-up with play.
+
+    Parameters
+    ----------
+    duration_s, frame_rate_hz : float
+    noise : float
+        Segmentation noise sigma in the rig's image unit (mm for the default orthographic rig).
+    seed : int
+    catheter, rig : optional
+        Default catheter model and orthographic rig.
+    """
+    from replay.simulator import (
+        NoiseSettings,
+        default_scene,
+        simulate_frames,
+        sinusoidal,
+        torsion_windup,
+    )
+
+    catheter = default_catheter() if catheter is None else catheter
+    rig = default_orthographic_rig() if rig is None else rig
+    scene = default_scene(catheter, rig)
+    trajectory = sinusoidal(
+        mean=list(SESSION_MEAN),
+        amplitude=list(SESSION_AMPLITUDE),
+        period_s=list(SESSION_PERIOD_S),
+        duration_s=duration_s,
+        frame_rate_hz=frame_rate_hz,
+    )
+    truth = torsion_windup(trajectory.q[:, 0], play_rad=np.radians(60), offset_rad=np.radians(120))
+    frames = simulate_frames(
+        scene, trajectory, truth, NoiseSettings(sigma=noise), np.random.default_rng(seed)
+    )
+    return SimulatedSession(scene, trajectory, truth, frames)
+
+
+class SimulatedSource(PacedSource):
+    """The frames of a simulated session, optionally paced at real time.
+
+    ``joints=False`` yields them as :class:`~tracker.udp.SegmentedMarkers` (no joint values)
+    for a loop that takes its joints from a :class:`~tracker.udp.JointReceiver`.
+    """
+
+    def __init__(
+        self, frames: Iterable[Frame], speed: float | None = 1.0, joints: bool = True, **kwargs
+    ) -> None:
+        if not joints:
+            frames = (
+                SegmentedMarkers(f.time_s, f.uv_front, f.uv_side, f.cov_front, f.cov_side, i)
+                for i, f in enumerate(frames)
+            )
+        super().__init__(frames, speed, **kwargs)
+
+
+class RenderedSource(PacedSource):
+    """Rendered bi-plane images of simulated frames (replay.render), as :class:`ImagePair`.
+
+    Parameters
+    ----------
+    renderer : replay.render.Renderer
+        Pinhole rig, catheter and background of the images.
+    frames : iterable of Frame
+        Joint values and true delta_L of each image (their segmented points are ignored).
+    seed : int
+        Seeds the sensor noise.
+    speed : float or None
+    """
+
+    def __init__(self, renderer, frames: Iterable[Frame], seed: int = 0, speed=1.0, **kwargs):
+        rng = np.random.default_rng(seed)
+
+        def pairs() -> Iterator[ImagePair]:
+            for f in frames:
+                images = renderer.render(f.q, f.delta_L_true_rad, rng).images
+                yield ImagePair(f.time_s, images[0], images[1])
+
+        super().__init__(pairs(), speed, **kwargs)
+
+
+# ---------------------------------------------------------------------------------- OpenCV
+def _capture_spec(spec: int | str) -> int | str:
+    """A camera index (int, or a string of digits) or a file path / URL."""
+    if isinstance(spec, str) and spec.strip().isdigit():
+        return int(spec)
+    return spec
+
+
+def _describe(name: str, spec: int | str) -> str:
+    return f"{name} camera {spec}" if isinstance(spec, int) else f"{name} video {spec!r}"
+
+
+def open_capture(spec: int | str, name: str = "front"):
+    """``cv2.VideoCapture`` of a camera index or a video file, or one clear OSError naming it."""
+    import cv2
+
+    spec = _capture_spec(spec)
+    if isinstance(spec, str) and "://" not in spec:
+        from pathlib import Path
+
+        if not Path(spec).is_file():
+            raise OSError(f"cannot open the {_describe(name, spec)}: no such file")
+    capture = cv2.VideoCapture(spec)
+    if not capture.isOpened():
+        capture.release()
+        hint = " (is it connected, and not in use by another program?)" if isinstance(
+            spec, int
+        ) else " (unsupported format or codec?)"
+        raise OSError(f"cannot open the {_describe(name, spec)}{hint}")
+    return capture
+
+
+def _gray(image: Array) -> Array:
+    import cv2
+
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        return cv2.cvtColor(image, code)
+    return image
+
+
+class VideoSource:
+    """Two cameras or two video files through OpenCV, as :class:`ImagePair` items.
+
+    Both captures are grabbed first and decoded afterwards, so the two exposures are as close
+    in time as the devices allow. Camera images are stamped with ``time.monotonic()`` at the
+    grab; video-file images with the front file's position (``CAP_PROP_POS_MSEC``), paced at
+    real time when ``realtime`` is set. Iteration ends when either capture stops delivering.
+
+    Parameters
+    ----------
+    front, side : int or str
+        Camera index (or its digits as a string), video file or stream URL.
+    realtime : bool
+        Pace video files at their frame rate (cameras are paced by themselves).
+    monotonic : callable
+    """
+
+    def __init__(
+        self,
+        front: int | str,
+        side: int | str,
+        realtime: bool = False,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.specs = (_capture_spec(front), _capture_spec(side))
+        self.time_is_monotonic = any(isinstance(s, int) for s in self.specs)
+        self.realtime = realtime
+        self.monotonic = monotonic
+        self.stop_reason: str | None = None
+        self._captures = []
+        try:
+            for name, spec in zip(("front", "side"), self.specs, strict=True):
+                self._captures.append(open_capture(spec, name))
+        except OSError:
+            self.close()
+            raise
+
+    def __iter__(self) -> Iterator[ImagePair]:
+        import cv2
+
+        front, side = self._captures
+        start = first = None
+        while self._captures:
+            grabbed = (front.grab(), side.grab())
+            stamp = self.monotonic()
+            if not all(grabbed):
+                which = [_describe(n, s) for n, s, ok in zip(("front", "side"), self.specs,
+                                                             grabbed, strict=True) if not ok]
+                self.stop_reason = f"{' and '.join(which)} stopped delivering images"
+                return
+            images = [c.retrieve()[1] for c in (front, side)]
+            if any(image is None for image in images):
+                self.stop_reason = "a capture returned an empty image"
+                return
+            if self.time_is_monotonic:
+                time_s = stamp
+            else:
+                time_s = front.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+                if self.realtime:
+                    if start is None:
+                        start, first = stamp, time_s
+                    wait = start + (time_s - first) - self.monotonic()
+                    if wait > 0:
+                        time.sleep(wait)
+            yield ImagePair(time_s, _gray(images[0]), _gray(images[1]))
+
+    def close(self) -> None:
+        for capture in self._captures:
+            capture.release()
+        self._captures = []
+
+    def __enter__(self) -> VideoSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# -------------------------------------------------------------------------------------- UDP
+class UdpMarkerSource:
+    """Segmented markers over UDP (:class:`~tracker.udp.MarkerReceiver`) as loop items.
+
+    Yields ``None`` after every ``poll_s`` without a datagram, so the loop stays responsive and
+    can end on its idle timeout.
+
+    Parameters
+    ----------
+    receiver : MarkerReceiver
+    poll_s : float
+    time_is_monotonic : bool
+        Set when the external segmenter runs on this machine and stamps its markers with the
+        same monotonic clock (latency is then measured from the image time stamp).
+    """
+
+    def __init__(
+        self, receiver: MarkerReceiver, poll_s: float = 0.05, time_is_monotonic: bool = False
+    ) -> None:
+        self.receiver = receiver
+        self.poll_s = float(poll_s)
+        self.time_is_monotonic = time_is_monotonic
+
+    def __iter__(self) -> Iterator[SegmentedMarkers | None]:
+        while True:
+            batch = self.receiver.receive(self.poll_s)
+            if not batch:
+                yield None
+            yield from batch
+
+    @property
+    def counts(self):
+        return self.receiver.counts
+
+    def close(self) -> None:
+        self.receiver.close()
+
+
+# -------------------------------------------------------------------------------- recordings
+class RecordingSource(PacedSource):
+    """The frames of an MCAP recording (:mod:`replay.recording`), paced at real time.
+
+    Frames come with the recorded markers and joint values (and images with ``images``);
+    ``recording`` gives the CLI the recorded catheter model and rig
+    (``recording.catheter()``, ``recording.rig()``) to build the reconstructor.
+
+    Parameters
+    ----------
+    recording : str, Path or replay.recording.Recording
+    speed : float or None
+    images : bool
+        Decode the recorded images (for a viewer); the loop itself uses the recorded markers.
+
+    Raises
+    ------
+    replay.recording.RecordingError (a ValueError)
+        Not a readable cathtrack recording.
+    """
+
+    def __init__(self, recording, speed: float | None = 1.0, images: bool = False, **kwargs):
+        from replay.recording import Recording, open_recording
+
+        if not isinstance(recording, Recording):
+            recording = open_recording(recording)
+        self.recording = recording
+        super().__init__((r.frame for r in recording.frames(images=images)), speed, **kwargs)
+
+    def close(self) -> None:
+        self.recording.close()
