@@ -21,9 +21,11 @@ One trial
 
 Speed
     The per-frame closed forms run on all trials of a task at once (one batched
-    reconstruction, one batched rotation fit); only the UKF (and the optional least-squares
-    baselines) steps trial by trial, so it runs on the first ``ukf_trials`` trials of every
-    study point.
+    reconstruction, one batched rotation fit), and so does the UKF: one filter per trial,
+    stepped together over the frames by :func:`tracker.ukf_batch.run_ukf_batch` (the same
+    filter as :class:`~tracker.ukf.BendingPlaneUKF`, to rounding). Only the optional
+    least-squares baselines step trial by trial. The UKF and the baselines run on the first
+    ``ukf_trials`` trials of every study point (by default all of them).
 
 Tasks and seeds
     Each (study, variant, delta_2, level, chunk of ``chunk_trials`` trials) is an independent
@@ -69,6 +71,7 @@ from replay.simulator import (
 )
 from tracker.estimators import PerFrameEstimator, closed_form_batch, make_estimator
 from tracker.observation import Observation, velocity_from_positions
+from tracker.ukf_batch import finite_difference_velocity, run_ukf_batch
 
 Array = np.ndarray
 
@@ -167,7 +170,9 @@ class SensitivitySettings:
         Monte Carlo trials per study point for the per-frame estimators and the bound.
     ukf_trials : int
         Trials per study point on which the UKF (and any least-squares baseline) runs: the
-        first ``min(ukf_trials, trials)`` of the same trials.
+        first ``min(ukf_trials, trials)`` of the same trials. The default runs the UKF on all
+        500 (it is batched over trials, see :func:`ukf_errors`); the least-squares baselines
+        step trial by trial, so a run with them may want fewer.
     chunk_trials : int
         Trials per task. Results depend on it (it cuts the random streams), not on workers.
     methods : tuple of str
@@ -206,7 +211,7 @@ class SensitivitySettings:
 
     seed: int = 0
     trials: int = 500
-    ukf_trials: int = 50
+    ukf_trials: int = 500
     chunk_trials: int = 500
     methods: tuple[str, ...] = DEFAULT_METHODS
     studies: tuple[str, ...] = STUDIES
@@ -721,7 +726,8 @@ def stepped_errors(data: TrialData, method: str, trials: int) -> Array:
     """Signed errors (rad) of an estimator stepped frame by frame on the first trials.
 
     The UKF runs over every frame of the trial and is scored on its last estimate; a
-    least-squares baseline runs on the last frame. Invalid estimates are NaN.
+    least-squares baseline runs on the last frame. Invalid estimates are NaN. (The studies run
+    the UKF through :func:`ukf_errors`, which gives the same errors for all trials at once.)
     """
     errors = np.full(trials, np.nan)
     if method in BASELINE_METHODS:
@@ -739,6 +745,38 @@ def stepped_errors(data: TrialData, method: str, trials: int) -> Array:
         if estimate.valid:
             errors[i] = wrap_angle(estimate.delta_L_rad - data.delta_L_rad[i])
     return errors
+
+
+def ukf_errors(data: TrialData, method: str, trials: int) -> Array:
+    """Signed errors (rad) of the UKF after the last frame of each of the first trials.
+
+    :func:`tracker.ukf_batch.run_ukf_batch` runs one filter per trial on the observations
+    :meth:`TrialData.observations` makes (tip, markers, finite-difference velocity), all trials
+    at once; it is the same filter as :class:`~tracker.ukf.BendingPlaneUKF` stepped trial by
+    trial (:func:`stepped_errors`). Invalid estimates are NaN.
+    """
+    settings = make_estimator(method, data.catheter).settings
+    traj = data.batch.trajectory
+    points = data.points_b[:trials]
+    cov = data.cov_b[:trials] if data.cov_b.shape[0] > 1 else data.cov_b
+    velocity, velocity_cov, cross = finite_difference_velocity(
+        traj.time_s, points[:, :, 0], cov[:, :, 0]
+    )
+    result = run_ukf_batch(
+        data.catheter,
+        settings,
+        traj.time_s,
+        traj.q,
+        traj.q_dot,
+        points[:, :, 0],
+        cov[:, :, 0],
+        points[:, :, 1:],
+        cov[:, :, 1:],
+        velocity,
+        velocity_cov,
+        cross,
+    )
+    return wrap_angle(result.delta_L_rad[:, -1] - data.delta_L_rad[:trials])
 
 
 @dataclass(frozen=True)
@@ -764,6 +802,8 @@ def _run_task(settings: SensitivitySettings, task: Task) -> TaskResult:
             values[method] = closed_form_errors(data, CLOSED_FORM_METHODS[method])
         elif method == BOUND_METHOD:
             values.update(bound_std(data))
+        elif method in FILTER_METHODS and stepped:
+            values[method] = ukf_errors(data, method, stepped)
         elif stepped:
             values[method] = stepped_errors(data, method, stepped)
     return TaskResult(task, values)

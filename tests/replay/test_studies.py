@@ -18,7 +18,9 @@ from replay.studies import (
     read_table,
     run_sensitivity,
     simulate_task,
+    stepped_errors,
     study_points,
+    ukf_errors,
 )
 from tracker.cli import main
 from tracker.estimators import make_estimator
@@ -28,7 +30,6 @@ from tracker.pipeline import Reconstructor
 SMALL = SensitivitySettings(
     seed=1,
     trials=160,
-    ukf_trials=12,
     chunk_trials=80,
     noise_levels_mm=(0.0, 0.5, 1.0, 2.0, 4.0),
     theta_L1_deg=(10.0, 50.0, 90.0, 130.0, 170.0),
@@ -39,7 +40,6 @@ SMALL = SensitivitySettings(
 TINY = SensitivitySettings(
     seed=11,
     trials=30,
-    ukf_trials=3,
     chunk_trials=20,
     noise_levels_mm=(0.0, 1.0),
     theta_L1_deg=(45.0, 90.0),
@@ -188,6 +188,25 @@ def test_batched_trials_are_what_the_live_pipeline_makes_of_their_frames(view):
             estimate = make_estimator(name, data.catheter).step(live[-1])
             error = (estimate.delta_L_rad - frames[-1].delta_L_true_rad + np.pi) % (2 * np.pi)
             assert error - np.pi == pytest.approx(errors[i], abs=1e-7)
+
+
+def test_the_ukf_runs_on_every_trial_by_default():
+    assert SensitivitySettings().effective_ukf_trials == SensitivitySettings().trials == 500
+    assert SMALL.effective_ukf_trials == SMALL.trials
+
+
+@pytest.mark.parametrize("view", ["orthographic", "pinhole"])
+def test_batched_ukf_is_the_ukf_stepped_trial_by_trial(view):
+    """Every point of TINY (bent and straight, noise 0 and 1 mm, both deflections, both
+    delta_2): the batched filter's final errors are BendingPlaneUKF's, for both UKF variants."""
+    settings = dataclasses.replace(TINY, view=view)
+    for point in study_points(settings):
+        data = simulate_task(settings, Task(point, 0, 0, 12))
+        for method in ("ukf", "ukf-position"):
+            batched = ukf_errors(data, method, 12)
+            stepped = stepped_errors(data, method, 12)
+            np.testing.assert_array_equal(np.isnan(batched), np.isnan(stepped))
+            np.testing.assert_allclose(batched, stepped, rtol=0, atol=1e-9)
 
 
 def test_least_squares_baseline_agrees_with_the_closed_form_away_from_straight():
