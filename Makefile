@@ -24,7 +24,8 @@ demo: $(STAMP)
 	$(BIN)/cathtrack demo
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_models.py
+	for b in models estimators studies segmentation replay latency; do \
+	  $(BIN)/python benchmarks/bench_$$b.py || exit 1; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -29,20 +29,45 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cathtrack {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from tracker.demo import DEFAULT_RRD
+    from tracker.viewer import add_rerun_args
+
     demo = sub.add_parser(
         "demo",
-        help="simulate a bi-plane session and track it with every estimator",
+        help="track a simulated bi-plane session live and write a rerun recording",
         description=(
-            "Simulate a session of the default catheter under two orthogonal imaging planes "
-            "(1 mm segmentation noise, torsion wind-up while the base turns) and print the "
-            "accuracy of every estimator next to the Cramer-Rao bound, in degrees."
+            "Track a simulated session with the live loop of 'cathtrack track': a simulated "
+            "controller streams the joint values at 1 kHz over loopback UDP, two simulated "
+            "640x480 cameras render the catheter at 20 fps, and the loop segments every image "
+            "pair, runs the UKF (and the closed-form Tip Position estimator on the same "
+            "observations) and sends each estimate back to the controller. Writes a rerun "
+            "recording (out/demo.rrd; --connect, --spawn or --serve to watch it live) and "
+            "prints the accuracy in degrees and the latency at the end. Runs in real time."
         ),
     )
-    demo.add_argument("--frames", type=int, default=400, help="number of frames (default 400)")
-    demo.add_argument("--noise-mm", type=float, default=1.0, help="segmentation noise sigma, mm")
+    demo.add_argument(
+        "--seconds", type=float, default=15.0, help="length of the session, s (default 15)"
+    )
     demo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    demo.add_argument("--delta-2-deg", type=float, default=0.0, help="distal plane angle, deg")
+    demo.add_argument(
+        "--estimator", default="ukf", metavar="NAME", help="the loop's estimator (default ukf)"
+    )
+    demo.add_argument(
+        "--frame-rate-hz", type=float, default=20.0, help="image pairs per second (default 20)"
+    )
+    demo.add_argument(
+        "--no-images", action="store_true", help="no images in the rerun recording"
+    )
+    demo.add_argument(
+        "--image-every",
+        type=int,
+        default=2,
+        metavar="N",
+        help="images of every N-th pair in the rerun recording (default 2)",
+    )
+    add_rerun_args(demo, save_default=DEFAULT_RRD)
     demo.set_defaults(run=_run_demo)
+    _add_track(sub)
     _add_sensitivity(sub)
     _add_calibrate(sub)
     _add_simulate(sub)
@@ -118,7 +143,9 @@ def _add_sensitivity(sub) -> None:
     what.add_argument("--view", metavar="KIND", help="orthographic (default) or pinhole")
     what.add_argument("--trials", type=int, help="trials per study point (500)")
     what.add_argument(
-        "--ukf-trials", type=int, help="of those, how many the UKF steps through (50)"
+        "--ukf-trials",
+        type=int,
+        help="of those, how many the UKF and the least-squares baselines use (all)",
     )
     what.add_argument("--chunk-trials", type=int, help="trials per parallel task (500)")
     what.add_argument(
@@ -439,11 +466,422 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from tracker.demo import run_demo
+    from tracker.demo import DemoSettings, run_demo
 
-    return run_demo(
-        frames=args.frames, noise_mm=args.noise_mm, seed=args.seed, delta_2_deg=args.delta_2_deg
+    settings = DemoSettings(
+        seconds=args.seconds,
+        frame_rate_hz=args.frame_rate_hz,
+        seed=args.seed,
+        estimator=args.estimator,
+        images=not args.no_images,
+        image_every=args.image_every,
     )
+    return run_demo(settings, args)
+
+
+# ------------------------------------------------------------------------------ track
+def _add_track(sub) -> None:
+    from tracker.viewer import add_rerun_args
+
+    p = sub.add_parser(
+        "track",
+        help="track the catheter live: joints over UDP, images or markers in, estimates out",
+        description=(
+            "The online loop (docs/live.md): joint values arrive as UDP datagrams (up to "
+            "1 kHz) and are interpolated to each image time; frames come from two cameras or "
+            "video files (segmented here), from an external segmenter over UDP, or from a "
+            "recording played back at real time; every frame is reconstructed and the "
+            "estimator's result goes to the outputs: UDP datagrams to the controller, "
+            "OpenIGTLink transforms for 3D Slicer, an MCAP recording and rerun. Listeners "
+            "bind to 127.0.0.1 unless --bind says otherwise. Ctrl-C stops cleanly: the "
+            "summary is printed, files are finished and sockets released (exit code 130)."
+        ),
+    )
+    src = p.add_argument_group("frames (exactly one source)")
+    src.add_argument("--camera-front", metavar="INDEX", help="front camera (OpenCV index)")
+    src.add_argument("--camera-side", metavar="INDEX", help="side camera (OpenCV index)")
+    src.add_argument("--video-front", metavar="FILE", help="front video file")
+    src.add_argument("--video-side", metavar="FILE", help="side video file")
+    src.add_argument(
+        "--markers-port",
+        type=int,
+        metavar="PORT",
+        help="segmented markers as UDP datagrams on this port (docs/live.md; e.g. 25002)",
+    )
+    src.add_argument(
+        "--recording",
+        metavar="FILE",
+        help="play a recording (MCAP) back, with its model, rig, base pose and joint values",
+    )
+    src.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="playback speed of --recording (default 1: real time; 0: as fast as possible)",
+    )
+    src.add_argument(
+        "--backgrounds",
+        nargs=2,
+        metavar=("FRONT", "SIDE"),
+        help="images of the empty scene, one per camera (needed to segment images)",
+    )
+    src.add_argument("--segmentation", metavar="FILE", help="segmentation settings (TOML)")
+    joints = p.add_argument_group("joint values")
+    joints.add_argument(
+        "--joints-port",
+        type=int,
+        metavar="PORT",
+        help="UDP port of the joint datagrams (default 25000; not with --recording)",
+    )
+    joints.add_argument(
+        "--joint-clock",
+        choices=["aligned", "sender", "arrival"],
+        default="aligned",
+        help="time base of the joint samples (default aligned: the controller's sampling on"
+        " this machine's clock; sender: its time stamps as they are)",
+    )
+    model = p.add_argument_group("model, rig and base")
+    model.add_argument("--model", metavar="FILE", help="catheter model file (default model)")
+    model.add_argument(
+        "--rig", metavar="FILE", help="rig file (TOML, docs/vision.md), with the base in [base]"
+    )
+    model.add_argument(
+        "--rig-model",
+        choices=["pinhole", "orthographic"],
+        default="pinhole",
+        help="the rig's cameras (default) or the paper's orthographic planes (markers in mm)",
+    )
+    model.add_argument(
+        "--base-origin-mm",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        help="registered base origin in the world frame (default: the rig's or recording's)",
+    )
+    model.add_argument(
+        "--base-rotvec-deg",
+        nargs=3,
+        type=float,
+        metavar=("RX", "RY", "RZ"),
+        help="registered base orientation as a rotation vector, deg (default 0 0 0 with"
+        " --base-origin-mm)",
+    )
+    p.add_argument(
+        "--estimator", default="ukf", metavar="NAME", help="estimator (default ukf)"
+    )
+    out = p.add_argument_group("outputs")
+    out.add_argument(
+        "--estimate-to",
+        default="127.0.0.1:25001",
+        metavar="HOST:PORT",
+        help="send the estimate datagrams here (default 127.0.0.1:25001; 'off': do not)",
+    )
+    out.add_argument(
+        "--igtl-port",
+        type=int,
+        metavar="PORT",
+        help="serve OpenIGTLink transforms for 3D Slicer on this port (e.g. 18944)",
+    )
+    out.add_argument(
+        "--record", metavar="FILE", help="record the inputs and the estimates (MCAP)"
+    )
+    out.add_argument(
+        "--bind",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="address of every listener (default 127.0.0.1; the lab network's interface to"
+        " take datagrams from a real-time target)",
+    )
+    out.add_argument("--no-images", action="store_true", help="no images in rerun")
+    out.add_argument(
+        "--image-every",
+        type=int,
+        default=2,
+        metavar="N",
+        help="images of every N-th frame in rerun (default 2)",
+    )
+    add_rerun_args(p)
+    run = p.add_argument_group("run")
+    run.add_argument(
+        "--idle-timeout",
+        type=float,
+        metavar="S",
+        help="stop after S seconds without a frame (default: run until Ctrl-C)",
+    )
+    run.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.set_defaults(run=_run_track)
+
+
+def _track_report(message: str) -> None:
+    print(f"cathtrack track: {message}", file=sys.stderr, flush=True)
+
+
+def _host_port(text: str, option: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"{option} must be HOST:PORT, e.g. 127.0.0.1:25001, got {text!r}")
+    return host, int(port)
+
+
+def _track_source_kind(args: argparse.Namespace) -> str:
+    given = {
+        "recording": args.recording is not None,
+        "markers": args.markers_port is not None,
+        "video": bool(args.video_front or args.video_side),
+        "camera": bool(args.camera_front or args.camera_side),
+    }
+    kinds = [kind for kind, on in given.items() if on]
+    if len(kinds) != 1:
+        got = f" (got {', '.join(kinds)})" if kinds else ""
+        raise ValueError(
+            "give one source of frames: --camera-front/--camera-side, --video-front/"
+            f"--video-side, --markers-port or --recording{got}"
+        )
+    kind = kinds[0]
+    if kind in ("video", "camera") and not all(
+        getattr(args, f"{kind}_{view}") for view in ("front", "side")
+    ):
+        raise ValueError(f"give both --{kind}-front and --{kind}-side")
+    if kind == "recording" and args.joints_port is not None:
+        raise ValueError("--joints-port does not apply to --recording (its joints are recorded)")
+    if args.speed < 0:
+        raise ValueError(f"--speed must be >= 0 (0: as fast as possible), got {args.speed}")
+    return kind
+
+
+def _track_base(args: argparse.Namespace, base):
+    """The registered base pose: the options, else the rig file's [base] or the recording's."""
+    import numpy as np
+
+    if args.base_origin_mm is not None or args.base_rotvec_deg is not None:
+        from scipy.spatial.transform import Rotation
+
+        if args.base_origin_mm is None:
+            raise ValueError("--base-rotvec-deg needs --base-origin-mm")
+        rotvec = np.radians(args.base_rotvec_deg or (0.0, 0.0, 0.0))
+        return Rotation.from_rotvec(rotvec).as_matrix(), np.asarray(args.base_origin_mm, float)
+    if base is None:
+        raise ValueError(
+            "no registered base pose: give --base-origin-mm (and --base-rotvec-deg) or a rig"
+            " file with a [base] table"
+        )
+    return base
+
+
+def _read_rig(path: str, model: str):
+    """The rig of a rig file and its [base] (R_w_b, o_b_w_mm), or None without one."""
+    import numpy as np
+
+    from models.rig_file import RigFileError, read_rig_file, rig_from_dict
+
+    data = read_rig_file(path)
+    rig = rig_from_dict(data, path, model)
+    base = data.get("base")
+    if base is None:
+        return rig, None
+    try:
+        R_w_b = np.asarray(base["R_w_b"], float).reshape(3, 3)
+        o_b_w_mm = np.asarray(base["o_b_w_mm"], float).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        raise RigFileError(f"{path} [base]: needs R_w_b (3x3) and o_b_w_mm (3)") from None
+    return rig, (R_w_b, o_b_w_mm)
+
+
+def _run_track(args: argparse.Namespace) -> int:
+    import contextlib
+    import time
+    from pathlib import Path
+
+    from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+    from replay.simulator import Scene
+    from tracker.estimators import make_estimator
+    from tracker.live import LiveTracker
+    from tracker.pipeline import Reconstructor
+    from tracker.udp import DEFAULT_JOINT_PORT, EstimateSender, JointReceiver
+    from tracker.viewer import LiveViewerSink, RerunSink, default_blueprint, open_rerun_output
+
+    report = _track_report
+    kind = _track_source_kind(args)
+    if args.image_every < 1:
+        raise ValueError(f"--image-every must be >= 1, got {args.image_every}")
+    estimate_to = (
+        None if args.estimate_to == "off" else _host_port(args.estimate_to, "--estimate-to")
+    )
+    inputs: list[str] = []
+    with contextlib.ExitStack() as stack:  # closes what was opened if the set-up fails
+        # ---- model, rig, base
+        recording = None
+        model_toml = None
+        if kind == "recording":
+            from replay.recording import open_recording
+
+            recording = open_recording(args.recording)
+            stack.callback(recording.close)
+            catheter = recording.catheter()
+            model_toml = recording.metadata.model_toml
+            rig, R_w_b, o_b_w_mm = recording.rig()
+            base = (R_w_b, o_b_w_mm)
+        else:
+            if args.rig is None:
+                raise ValueError("give the rig file (--rig FILE) of the cameras")
+            base = None
+        if args.model is not None:
+            catheter = load_catheter(args.model)
+            model_toml = Path(args.model).read_text(encoding="utf-8")
+        elif recording is None:
+            catheter = load_catheter(DEFAULT_MODEL_PATH)
+            model_toml = DEFAULT_MODEL_PATH.read_text(encoding="utf-8")
+        if args.rig is not None:
+            rig, rig_base = _read_rig(args.rig, args.rig_model)
+            base = rig_base or base
+        R_w_b, o_b_w_mm = _track_base(args, base)
+        scene = Scene(catheter, rig, R_w_b, o_b_w_mm)
+        estimator = make_estimator(args.estimator, catheter)
+        reconstructor = Reconstructor(catheter, rig, R_w_b, o_b_w_mm)
+
+        # ---- outputs first (a port in use fails before anything listens)
+        sinks: list = []
+        igtl = None
+        if estimate_to is not None:
+            sender = EstimateSender(estimate_to, report=report)
+            stack.callback(sender.close)
+            sinks.append(sender)
+        if args.igtl_port is not None:
+            from tracker.igtl import IgtlSink
+
+            igtl = IgtlSink(
+                catheter, R_w_b, o_b_w_mm, host=args.bind, port=args.igtl_port, report=report
+            )
+            stack.callback(igtl.close)
+            sinks.append(igtl)
+        output = open_rerun_output(
+            args,
+            "cathtrack",
+            blueprint=default_blueprint([args.estimator], rig.kind == "pinhole", live=True),
+            bind=args.bind,
+            report=report,
+        )
+        viewer_sink = None
+        if output is not None:
+            viewer = RerunSink(
+                output.stream, primary=args.estimator, jpeg_quality=80, time_origin_s=None
+            )
+            stack.callback(viewer.close)
+            viewer_sink = LiveViewerSink(
+                viewer,
+                scene,
+                args.estimator,
+                images=not args.no_images,
+                image_every=args.image_every,
+                watch=output.watch(),
+                report=report,
+            )
+            stack.callback(viewer_sink.close)  # stops the viewer watch too
+            sinks.append(viewer_sink)
+
+        # ---- inputs
+        joints = segmenter = None
+        if kind != "recording":
+            joints = JointReceiver(
+                args.bind,
+                DEFAULT_JOINT_PORT if args.joints_port is None else args.joints_port,
+                clock=args.joint_clock,
+            )
+            stack.callback(joints.close)
+            host, port = joints.address
+            inputs.append(f"joints on udp://{host}:{port} ({args.joint_clock} clock)")
+        if kind == "recording":
+            from tracker.sources import RecordingSource
+
+            want_images = viewer_sink is not None and not args.no_images
+            source = RecordingSource(recording, speed=args.speed or None, images=want_images)
+            pace = "full speed" if not args.speed else f"{args.speed:g}x real time"
+            inputs.append(f"recording {args.recording} at {pace}")
+        elif kind == "markers":
+            from tracker.sources import UdpMarkerSource
+            from tracker.udp import MarkerReceiver
+
+            receiver = MarkerReceiver(
+                args.bind, args.markers_port, n_points=1 + len(catheter.marker_arclengths_mm)
+            )
+            stack.callback(receiver.close)
+            source = UdpMarkerSource(receiver)
+            host, port = receiver.address
+            inputs.append(f"markers on udp://{host}:{port}")
+        else:
+            from tracker.segmentation import (
+                PairSegmenter,
+                SegmentationSettings,
+                load_segmentation_settings,
+                read_grayscale,
+            )
+            from tracker.sources import VideoSource
+
+            if args.backgrounds is None:
+                raise ValueError(
+                    "segmenting images needs the empty scene: --backgrounds FRONT SIDE"
+                )
+            backgrounds = tuple(read_grayscale(path) for path in args.backgrounds)
+            settings = (
+                load_segmentation_settings(args.segmentation)
+                if args.segmentation
+                else SegmentationSettings()
+            )
+            segmenter = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+            specs = (
+                (args.video_front, args.video_side)
+                if kind == "video"
+                else (args.camera_front, args.camera_side)
+            )
+            source = VideoSource(*specs, realtime=kind == "video")
+            stack.callback(source.close)
+            inputs.append(f"{kind}s {specs[0]} and {specs[1]}")
+
+        if args.record is not None:
+            from replay.recording import VIEWS, RecordingWriter, rig_toml
+            from tracker.live import RecordingSink
+
+            writer = RecordingWriter(
+                args.record,
+                model_toml=model_toml,
+                rig_toml=rig_toml(rig, R_w_b, o_b_w_mm),
+                settings={"command": "track", "source": kind, "estimator": args.estimator},
+                point_unit="px" if rig.kind == "pinhole" else "mm",
+                # Live time stamps are monotonic seconds: log times become wall-clock time.
+                start_time_ns=0 if kind == "recording" else time.time_ns() - time.monotonic_ns(),
+            )
+            stack.callback(writer.close)
+            if segmenter is not None:
+                for view, background in zip(VIEWS, segmenter.backgrounds, strict=True):
+                    writer.write_background(view, background)
+            sinks.append(RecordingSink(writer, args.estimator, joints=joints))
+
+        tracker = LiveTracker(
+            reconstructor, estimator, sinks, joints=joints, segmenter=segmenter, report=report
+        )
+        if viewer_sink is not None:
+            viewer_sink.summary = tracker.summary
+        stack.pop_all()  # from here the loop closes every sink, the receiver and the source
+
+    outputs = []
+    if estimate_to is not None:
+        outputs.append(f"estimates to udp://{estimate_to[0]}:{estimate_to[1]}")
+    if igtl is not None:
+        outputs.append(f"OpenIGTLink on tcp://{igtl.host}:{igtl.port}")
+    if args.record is not None:
+        outputs.append(f"recording {args.record}")
+    if output is not None:
+        outputs.extend(f"rerun {target}" for target in output.targets)
+    print(f"cathtrack track: {args.estimator} on {'; '.join(inputs)}", flush=True)
+    print(f"cathtrack track: out to {'; '.join(outputs) or 'nowhere'}; Ctrl-C to stop", flush=True)
+    try:
+        summary = tracker.run(source, idle_timeout_s=args.idle_timeout, max_frames=args.max_frames)
+    except KeyboardInterrupt:  # Ctrl-C before the loop took it over: close all the same
+        tracker.close(source)
+        summary = tracker.summary
+        summary.stop_reason = "interrupted"
+    print(summary, flush=True)
+    return 130 if summary.interrupted else 0
 
 
 def main(argv: list[str] | None = None) -> int:

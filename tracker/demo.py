@@ -1,67 +1,516 @@
-"""``cathtrack demo``: a simulated bi-plane session tracked by every estimator."""
+"""``cathtrack demo``: the live loop end to end on an embedded simulated rig.
+
+A simulated controller streams the joint values of a session at 1 kHz as UDP datagrams over
+loopback; two simulated cameras (:mod:`replay.render`, the default rendering rig: 640x480,
+f = 2500 px, 400 mm away) render the bi-plane images of the catheter at 20 fps, rendered one
+pair at a time just before its exposure time and stamped on the same monotonic clock as the
+joints. The live loop (:class:`tracker.live.LiveTracker`, the same code as ``cathtrack
+track``) receives the joints on a real socket, interpolates them to each image time, segments
+each pair (:class:`tracker.segmentation.PairSegmenter`), reconstructs the markers, runs the
+UKF and sends every estimate back to the controller as a UDP datagram. The closed-form Tip
+Position estimator runs on the same observations for comparison. Everything goes to rerun
+(an ``.rrd`` file, and a viewer if asked for); at the end the accuracy of each method and the
+loop's latency are printed.
+
+The estimators never see the truth: it is known to the simulated cameras only and joins the
+frames in the sinks that score and draw them.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import math
+import signal
+import socket
+import sys
+import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from models.bounds import crb_tip
 from models.catheter import default_catheter
-from models.imaging import default_orthographic_rig
-from replay.evaluation import markdown_table, observations_from_frames, run_methods
-from replay.simulator import (
-    NoiseSettings,
-    default_scene,
-    simulate_frames,
-    sinusoidal,
-    torsion_windup,
-)
-from tracker.pipeline import Reconstructor
+from models.rotations import wrap_angle
+from tracker.observation import Estimate
+from tracker.sources import ImagePair
 
-DEMO_METHODS = ("tip-position", "body-positions", "tip-velocity", "ukf")
+Array = np.ndarray
+
+DEFAULT_RRD = "out/demo.rrd"
+COMPARE_METHOD = "tip-position"
 
 
+@dataclass(frozen=True)
+class DemoSettings:
+    """What the demo simulates and how it logs.
+
+    Parameters
+    ----------
+    seconds : float
+        Length of the session, s (it runs in real time).
+    frame_rate_hz, joint_rate_hz : float
+        Image pairs and joint datagrams per second.
+    seed : int
+        Seeds the rendered scene and the sensor noise.
+    estimator : str
+        The loop's estimator (its estimates go back to the controller).
+    compare : tuple of str
+        Estimators run on the same observations for the table and the plots.
+    images, image_every, jpeg_quality :
+        Images in the rerun recording: at all, every n-th pair, JPEG quality.
+    start_delay_s : float
+        Time between setting up and the first exposure (sockets ready, first pair rendered).
+    """
+
+    seconds: float = 15.0
+    frame_rate_hz: float = 20.0
+    joint_rate_hz: float = 1000.0
+    seed: int = 0
+    estimator: str = "ukf"
+    compare: tuple[str, ...] = (COMPARE_METHOD,)
+    images: bool = True
+    image_every: int = 2
+    jpeg_quality: int = 80
+    start_delay_s: float = 0.3
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0:
+            raise ValueError(f"the session must last a positive time, got {self.seconds} s")
+        if self.seconds * self.frame_rate_hz < 2:
+            raise ValueError("the demo needs at least 2 frames: give more --seconds")
+        for name in ("frame_rate_hz", "joint_rate_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+# ----------------------------------------------------------------------------- cameras
+class SimulatedCameras:
+    """Two cameras of the rendering rig, as a live source of :class:`ImagePair` items.
+
+    Pair ``k`` shows the catheter at the session's joints and true delta_L at ``t_k``; it is
+    rendered, then released at its exposure time ``start_s + t_k`` on the monotonic clock
+    and stamped with it, as a camera with a hardware time stamp would deliver it. The loop
+    therefore measures latency from the exposure (``time_is_monotonic``). Pairs that could
+    not be rendered in time are released late, still stamped with their exposure time, and
+    counted in ``late`` (more than ``late_after_s`` after their exposure).
+
+    Parameters
+    ----------
+    renderer : replay.render.Renderer
+    frames : sequence of Frame
+        The session's frames (their joints and truth; their segmented points are ignored).
+    start_s : float
+        Monotonic time of the session's time 0.
+    seed : int
+        Seeds the sensor noise.
+    """
+
+    time_is_monotonic = True
+
+    def __init__(
+        self,
+        renderer,
+        frames: Sequence,
+        start_s: float,
+        seed: int = 0,
+        late_after_s: float = 0.025,
+    ) -> None:
+        self.renderer = renderer
+        self.frames = frames
+        self.start_s = float(start_s)
+        self.seed = seed
+        self.late_after_s = float(late_after_s)
+        self.late = 0
+        self._truth: dict[float, float] = {}
+
+    def truth(self, time_s: float) -> float | None:
+        """True delta_L (rad) of the pair stamped ``time_s``."""
+        return self._truth.get(float(time_s))
+
+    def __iter__(self) -> Iterator[ImagePair]:
+        rng = np.random.default_rng(self.seed)
+        for frame in self.frames:
+            images = self.renderer.render(frame.q, frame.delta_L_true_rad, rng).images
+            exposure_s = self.start_s + float(frame.time_s)
+            wait = exposure_s - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            elif -wait > self.late_after_s:
+                self.late += 1
+            self._truth[exposure_s] = float(frame.delta_L_true_rad)
+            yield ImagePair(exposure_s, images[0], images[1])
+
+
+# -------------------------------------------------------------------------- controller
+class SimulatedController:
+    """The robot controller's side: joints out at 1 kHz, estimate datagrams in.
+
+    Joint datagrams come from a :class:`tracker.udp.JointStreamer` thread; a second thread
+    receives the estimates on a loopback socket (OS-assigned port) and counts them.
+
+    Parameters
+    ----------
+    joints_to : (host, port)
+        The loop's joint receiver.
+    joints_at : callable
+        Seconds since ``start_s`` -> (q, q_dot).
+    rate_hz : float
+    start_s : float
+        Monotonic time of joint sample 0.
+    """
+
+    def __init__(
+        self,
+        joints_to: tuple[str, int],
+        joints_at: Callable[[float], tuple[Array, Array]],
+        rate_hz: float,
+        start_s: float,
+    ) -> None:
+        from tracker.udp import LOOPBACK, JointStreamer
+
+        self.streamer = JointStreamer(joints_to, joints_at, rate_hz, start_s=start_s)
+        self.received = 0
+        self.valid = 0
+        self.malformed = 0
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind((LOOPBACK, 0))
+        self._sock.settimeout(0.05)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._receive, name="controller", daemon=True)
+
+    @property
+    def estimate_address(self) -> tuple[str, int]:
+        return self._sock.getsockname()
+
+    def start(self) -> SimulatedController:
+        self.streamer.start()
+        self._thread.start()
+        return self
+
+    def _receive(self) -> None:
+        from tracker.udp import DatagramError, decode_estimate
+
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(256)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            try:
+                message = decode_estimate(data)
+            except DatagramError:
+                self.malformed += 1
+                continue
+            self.received += 1
+            self.valid += int(message.valid)
+
+    def stop(self, expected: int | None = None, timeout_s: float = 1.0) -> None:
+        """Stop streaming joints; wait (up to ``timeout_s``) for ``expected`` estimates."""
+        self.streamer.stop()
+        deadline = time.monotonic() + timeout_s
+        while expected is not None and self.received < expected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(1.0)
+        self._sock.close()
+
+
+# ------------------------------------------------------------------------------ sinks
+@dataclass
+class MethodScore:
+    """One method's estimates and the truth at their times (rad)."""
+
+    name: str
+    estimates: list[Estimate] = field(default_factory=list)
+    truth_rad: list[float] = field(default_factory=list)
+
+    def add(self, estimate: Estimate, truth_rad: float | None) -> None:
+        self.estimates.append(estimate)
+        self.truth_rad.append(math.nan if truth_rad is None else float(truth_rad))
+
+    def row(self) -> dict[str, float]:
+        """RMS, median absolute, max absolute error (deg), valid fraction, 2-sigma coverage."""
+        n = len(self.estimates)
+        valid = np.array([e.valid for e in self.estimates], dtype=bool)
+        truth = np.array(self.truth_rad, dtype=float)
+        scored = valid & np.isfinite(truth)
+        delta_L = np.array([e.delta_L_rad for e in self.estimates], dtype=float)
+        std = np.array([e.std_rad for e in self.estimates], dtype=float)
+        err = np.abs(wrap_angle(delta_L[scored] - truth[scored]))
+        if err.size == 0:
+            nan = math.nan
+            return dict(rms_deg=nan, median_deg=nan, max_deg=nan, valid=0.0, coverage=nan, n=n)
+        return dict(
+            rms_deg=float(np.degrees(np.sqrt(np.mean(err**2)))),
+            median_deg=float(np.degrees(np.median(err))),
+            max_deg=float(np.degrees(np.max(err))),
+            valid=float(np.mean(valid)) if n else 0.0,
+            coverage=float(np.mean(err <= 2 * std[scored])),
+            n=n,
+        )
+
+
+class ScoreSink:
+    """Scores the loop's estimator and runs the comparison estimators (a live-loop sink).
+
+    Each comparison estimator steps on the loop's observation of the frame, so all methods
+    see exactly the same reconstructed markers; their estimates go to the viewer too.
+
+    Parameters
+    ----------
+    method : str
+        The loop's estimator.
+    others : mapping of name to estimator
+    truth : callable
+        Image time -> true delta_L (rad) or None.
+    viewer : tracker.viewer.RerunSink, optional
+    """
+
+    name = "score"
+
+    def __init__(self, method: str, others: dict, truth: Callable, viewer=None) -> None:
+        self.truth, self.others, self.viewer = truth, others, viewer
+        self.scores = {name: MethodScore(name) for name in (method, *others)}
+        self.method = method
+
+    def handle(self, frame, observation, estimate, latency_s) -> None:
+        truth = self.truth(frame.time_s)
+        self.scores[self.method].add(estimate, truth)
+        for name, estimator in self.others.items():
+            other = estimator.step(observation)
+            self.scores[name].add(other, truth)
+            if self.viewer is not None:
+                self.viewer.log_estimate(name, other, truth)
+
+    def close(self) -> None:
+        pass
+
+
+# ------------------------------------------------------------------------------ report
+def _ms(value: float) -> str:
+    return f"{value:.1f}" if math.isfinite(value) else "-"
+
+
+def header_line(settings: DemoSettings) -> str:
+    """What is about to run (printed first: the run takes its length in real time)."""
+    frames = int(round(settings.seconds * settings.frame_rate_hz))
+    return (
+        f"cathtrack demo: {settings.seconds:g} s simulated session in real time, {frames}"
+        f" bi-plane image pairs (640x480, f = 2500 px) at {settings.frame_rate_hz:g} fps"
+        f" rendered and segmented live, joints at {settings.joint_rate_hz:g} Hz over loopback"
+        f" UDP, torsion wind-up 120 deg with 60 deg of play, seed {settings.seed}"
+    )
+
+
+def report_lines(
+    settings: DemoSettings,
+    scores: dict[str, MethodScore],
+    summary,
+    controller: SimulatedController,
+    estimates_sent: int,
+    rrd_path: Path | None,
+    viewers: Sequence[str],
+    late_frames: int,
+) -> list[str]:
+    """The printed result: an accuracy table per method, then the live loop's figures."""
+    lines = [
+        "",
+        "| method | RMS error (deg) | median abs (deg) | max abs (deg) | valid frames |"
+        " within 2 sigma |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, score in scores.items():
+        r = score.row()
+        role = " (live, sent)" if name == settings.estimator else " (same observations)"
+        lines.append(
+            f"| {name}{role} | {r['rms_deg']:.2f} | {r['median_deg']:.2f} | {r['max_deg']:.2f} |"
+            f" {100 * r['valid']:.0f}% | {100 * r['coverage']:.0f}% |"
+        )
+    lat, cyc = summary.latency_ms, summary.cycle_ms
+    joints = summary.joints
+    dropped = summary.frames_dropped
+    predict_only = summary.frames_stale_joints + summary.frames_no_joints
+    lines += [
+        "",
+        "| live loop | |",
+        "|---|---:|",
+        f"| frames processed / dropped / predict-only | {summary.frames_processed} / {dropped}"
+        f" / {predict_only} |",
+        f"| latency image -> estimate sent, p50 / p99 (ms) | {_ms(lat.get('p50', math.nan))} /"
+        f" {_ms(lat.get('p99', math.nan))} |",
+        f"| latency image -> all sinks done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
+        f" / {_ms(cyc.get('p99', math.nan))} |",
+    ]
+    if joints is not None:
+        lines.append(f"| joint datagrams received / used | {joints.received} / {joints.accepted} |")
+    lines += [
+        f"| estimates received by the controller | {controller.received} of {estimates_sent}"
+        f" sent ({controller.valid} valid) |",
+    ]
+    if late_frames:
+        lines.append(f"| image pairs rendered too late for real time | {late_frames} |")
+    if rrd_path is not None:
+        size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan
+        lines.append(f"| rerun recording | {rrd_path} ({size:.1f} MB) |")
+    for viewer in viewers:
+        lines.append(f"| rerun | {viewer} |")
+    lines += ["", f"stopped: {summary.stop_reason}"]
+    if rrd_path is not None:
+        lines.append(f"view it: rerun {rrd_path}")
+    return lines
+
+
+def _report_stderr(message: str) -> None:
+    print(f"cathtrack demo: {message}", file=sys.stderr, flush=True)
+
+
+def _serve_until_interrupted(url: str, out: Callable[[str], None]) -> None:
+    """Keep the gRPC server up for viewers until Ctrl-C or SIGTERM (even where a shell
+    started the process with SIGINT ignored)."""
+    out(f"serving the session to rerun viewers: rerun {url}  (Ctrl-C to stop)")
+    stop = threading.Event()
+    previous = {
+        signum: signal.signal(signum, lambda *_: stop.set())
+        for signum in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        while not stop.wait(0.5):  # short waits: the handlers run between them
+            pass
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+# ------------------------------------------------------------------------------- run
 def run_demo(
-    frames: int = 400,
-    noise_mm: float = 1.0,
-    seed: int = 0,
-    delta_2_deg: float = 0.0,
-    frame_rate_hz: float = 20.0,
+    settings: DemoSettings,
+    rerun_args,
+    *,
+    out: Callable[[str], None] = print,
+    report: Callable[[str], None] = _report_stderr,
 ) -> int:
-    """Simulate, reconstruct and track one session; print the accuracy table. Returns 0."""
-    if frames < 2:
-        raise ValueError(f"the demo needs at least 2 frames, got {frames}")
-    rng = np.random.default_rng(seed)
-    catheter = default_catheter(np.radians(delta_2_deg))
-    scene = default_scene(catheter, default_orthographic_rig())
-    # Bending sweeps while the base turns back and forth;
-    # torsion winds up around 120 deg with 60 deg of play.
-    trajectory = sinusoidal(
-        mean=[0.0, 0.55, 0.2],
-        amplitude=[2.5, 0.35, 0.6],
-        period_s=[16.0, 9.0, 6.0],
-        duration_s=frames / frame_rate_hz,
-        frame_rate_hz=frame_rate_hz,
+    """Run the demo; print its table with ``out``. Returns 0, or 130 after Ctrl-C.
+
+    Parameters
+    ----------
+    settings : DemoSettings
+    rerun_args : argparse.Namespace
+        The flags of :func:`tracker.viewer.add_rerun_args` (``save``, ``connect``...).
+    """
+    from replay.render import Renderer, default_render_rig
+    from replay.simulator import default_scene
+    from tracker.estimators import make_estimator
+    from tracker.live import LiveTracker
+    from tracker.pipeline import Reconstructor
+    from tracker.segmentation import PairSegmenter
+    from tracker.sources import session_joints, simulated_session
+    from tracker.udp import LOOPBACK, EstimateSender, JointReceiver
+    from tracker.viewer import (
+        LiveViewerSink,
+        RerunSink,
+        default_blueprint,
+        open_rerun_output,
     )
-    truth = torsion_windup(trajectory.q[:, 0], play_rad=np.radians(60), offset_rad=np.radians(120))
-    sim = simulate_frames(scene, trajectory, truth, NoiseSettings(sigma=noise_mm), rng)
-    reconstructor = Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
-    started = time.perf_counter()
-    observations = observations_from_frames(reconstructor, sim)
-    results = run_methods(catheter, observations, truth, DEMO_METHODS)
-    elapsed = time.perf_counter() - started
-    cov = np.array([o.tip_cov_b for o in observations])
-    bound = crb_tip(catheter, trajectory.q, truth, cov)
-    bound_rms_deg = float(np.degrees(np.sqrt(np.mean(np.minimum(bound, np.pi) ** 2))))
-    print(
-        f"cathtrack demo: {frames} frames at {frame_rate_hz:g} Hz, {noise_mm:g} mm segmentation "
-        f"noise per view, orthographic bi-plane, torsion wind-up 120 deg with 60 deg of play, "
-        f"seed {seed}"
+
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    session = simulated_session(
+        settings.seconds,
+        settings.frame_rate_hz,
+        noise=0.0,
+        seed=settings.seed,
+        catheter=catheter,
+        rig=scene.rig,
     )
-    print()
-    print(markdown_table(results, bound_rms_deg))
-    print()
-    per_frame_us = 1e6 * elapsed / (frames * len(DEMO_METHODS))
-    print(f"reconstruction + estimation: {per_frame_us:.0f} us per frame and method (mean)")
-    return 0
+    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=settings.seed)
+    segmenter = PairSegmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+    )
+    compare = tuple(m for m in settings.compare if m != settings.estimator)
+    estimator = make_estimator(settings.estimator, catheter)
+    others = {name: make_estimator(name, catheter) for name in compare}
+    output = open_rerun_output(
+        rerun_args,
+        "cathtrack-demo",
+        blueprint=default_blueprint([settings.estimator, *compare], live=True),
+        report=report,
+    )
+    with contextlib.ExitStack() as stack:  # closes what was opened if the set-up fails
+        viewer = None
+        if output is not None:
+            viewer = RerunSink(
+                output.stream,
+                primary=settings.estimator,
+                jpeg_quality=settings.jpeg_quality,
+                time_origin_s=None,
+            )
+            stack.callback(viewer.close)
+        # The sockets: the loop's joint receiver and the controller's estimate socket, both
+        # on loopback with ports the OS picks.
+        joints = JointReceiver(LOOPBACK, 0, clock="sender")
+        stack.callback(joints.close)
+        start_s = time.monotonic() + settings.start_delay_s
+        controller = SimulatedController(
+            joints.address, session_joints, settings.joint_rate_hz, start_s
+        )
+        stack.callback(controller.stop)
+        sender = EstimateSender(controller.estimate_address, report=report)
+        stack.callback(sender.close)
+        cameras = SimulatedCameras(
+            renderer, session.frames, start_s, settings.seed, 0.5 / settings.frame_rate_hz
+        )
+        sinks: list = [sender]
+        viewer_sink = None
+        if viewer is not None:
+            viewer.time_origin_s = start_s
+            # With --serve the stream stays open after the run, for web viewers to look.
+            viewer_sink = LiveViewerSink(
+                viewer,
+                scene,
+                settings.estimator,
+                images=settings.images,
+                image_every=settings.image_every,
+                truth=cameras.truth,
+                watch=output.watch(),
+                report=report,
+                close_stream=output.served_url is None,
+            )
+            stack.callback(viewer_sink.close)  # stops the viewer watch too
+            sinks.append(viewer_sink)
+        scorer = ScoreSink(settings.estimator, others, cameras.truth, viewer)
+        sinks.append(scorer)
+        tracker = LiveTracker(
+            Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+            estimator,
+            sinks,
+            joints=joints,
+            segmenter=segmenter,
+            report=report,
+        )
+        if viewer_sink is not None:
+            viewer_sink.summary = tracker.summary
+        out(header_line(settings))
+        controller.start()
+        try:
+            summary = tracker.run(cameras)  # closes the sinks, the receiver and the source
+        finally:
+            controller.stop(expected=sender.sent)
+        lines = report_lines(
+            settings,
+            scorer.scores,
+            summary,
+            controller,
+            sender.sent,
+            None if output is None or output.served_url else output.rrd_path,
+            [] if output is None else [t for t in output.targets if not t.startswith("file")],
+            cameras.late,
+        )
+        for line in lines:
+            out(line)
+        if output is not None and output.served_url is not None and not summary.interrupted:
+            _serve_until_interrupted(output.served_url, out)
+    return 130 if summary.interrupted else 0

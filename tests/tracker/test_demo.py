@@ -1,0 +1,295 @@
+"""``cathtrack demo`` and ``cathtrack track`` end to end, through ``main``, on loopback.
+
+The ``.rrd`` files are read back with rerun's own reader (``rerun.chunk.RrdReader``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from models.rotations import wrap_angle
+from tracker.cli import main
+from tracker.udp import decode_estimate, encode_joints, encode_markers
+
+REPO = Path(__file__).resolve().parents[2]
+LOOPBACK = "127.0.0.1"
+
+
+def entity_rows(path) -> dict[str, int]:
+    """Rows per entity path of the first recording in an .rrd (a file without its footer,
+    i.e. not closed properly, fails in ``store()``)."""
+    reader = RrdReader(path)
+    reader.store()
+    rows: dict[str, int] = {}
+    for chunk in reader.stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    return rows
+
+
+def free_port(kind=socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind((LOOPBACK, 0))
+        return s.getsockname()[1]
+
+
+def table_value(out: str, label: str) -> str:
+    """The value cell of the row of the printed table that starts with ``label``."""
+    match = re.search(rf"^\| {re.escape(label)} \| (.*) \|$", out, re.MULTILINE)
+    assert match, f"no row {label!r} in:\n{out}"
+    return match.group(1)
+
+
+class Controller:
+    """Receives estimate datagrams on a loopback port."""
+
+    def __init__(self):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((LOOPBACK, 0))
+        self.sock.setblocking(False)
+
+    @property
+    def port(self) -> int:
+        return self.sock.getsockname()[1]
+
+    def estimates(self):
+        out = []
+        while True:
+            try:
+                out.append(decode_estimate(self.sock.recv(256)))
+            except BlockingIOError:
+                return out
+
+    def close(self):
+        self.sock.close()
+
+
+# ------------------------------------------------------------------------------- demo
+def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, capsys):
+    rrd = tmp_path / "demo.rrd"
+    assert main(["demo", "--seconds", "2", "--save", str(rrd)]) == 0
+    out = capsys.readouterr().out
+    rows = entity_rows(rrd)
+    frames = 40
+    for entity in (
+        "/world/catheter/estimate",
+        "/world/catheter/truth",
+        "/world/catheter/plane_fan",
+        "/world/markers",
+        "/world/cameras/front/segmented",
+        "/world/cameras/side/reprojected",
+        "/series/delta_L/ukf",
+        "/series/delta_L/ukf_plus2sigma",
+        "/series/delta_L/truth",
+        "/series/error/ukf",
+        "/series/nis/ukf",
+        "/series/latency_ms/estimate",
+        "/series/frames/dropped",
+    ):
+        assert rows.get(entity, 0) >= frames - 1, entity
+    for entity in ("/world/cameras/front/image", "/world/cameras/side/image"):
+        assert rows.get(entity, 0) >= frames // 2 - 1, entity  # every second pair
+    assert rows.get("/series/delta_L/tip-position", 0) > frames // 2  # where it is valid
+    assert len(RrdReader(rrd).blueprints()) == 1  # the default blueprint went with the data
+    # The table: every method, the loop, the controller's count, the file.
+    for method in ("ukf (live, sent)", "tip-position (same observations)"):
+        cells = table_value(out, method).split(" | ")
+        assert len(cells) == 5 and float(cells[0]) < 5.0, cells  # RMS error, deg
+    processed, dropped, _ = table_value(out, "frames processed / dropped / predict-only").split(
+        " / "
+    )
+    assert int(processed) == frames and int(dropped) == 0
+    p50, p99 = table_value(out, "latency image -> estimate sent, p50 / p99 (ms)").split(" / ")
+    assert 0 < float(p50) <= float(p99)
+    received = table_value(out, "estimates received by the controller")
+    assert received.startswith(f"{frames} of {frames} sent")
+    assert str(rrd) in table_value(out, "rerun recording")
+
+
+# ------------------------------------------------------------------------------ track
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A 3 s recording of a simulated session (markers in mm) and its rig file."""
+    from models.model_file import DEFAULT_MODEL_PATH
+    from replay.recording import RecordingWriter, rig_toml
+    from tracker.sources import simulated_session
+
+    folder = tmp_path_factory.mktemp("recorded")
+    session = simulated_session(duration_s=3.0, frame_rate_hz=20.0, noise=0.3, seed=1)
+    scene = session.scene
+    rig = rig_toml(scene.rig, scene.R_w_b, scene.o_b_w_mm)
+    path = folder / "session.mcap"
+    with RecordingWriter(
+        path, model_toml=DEFAULT_MODEL_PATH.read_text(), rig_toml=rig, point_unit="mm"
+    ) as writer:
+        for frame in session.frames:
+            writer.write_joints(frame.time_s, frame.q, frame.q_dot)
+            writer.write_frame(frame)
+    (folder / "rig.toml").write_text(rig)
+    return session, path, folder / "rig.toml"
+
+
+def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
+    recorded, tmp_path, capsys
+):
+    from replay.recording import open_recording
+
+    session, path, _ = recorded
+    controller = Controller()
+    rrd, mcap = tmp_path / "track.rrd", tmp_path / "track.mcap"
+    viewer_url = f"rerun+http://{LOOPBACK}:{free_port(socket.SOCK_STREAM)}/proxy"
+    try:
+        code = main(
+            [
+                "track",
+                "--recording", str(path),
+                "--speed", "0",
+                "--estimate-to", f"{LOOPBACK}:{controller.port}",
+                "--igtl-port", "0",
+                "--record", str(mcap),
+                "--save", str(rrd),
+                "--connect", "--url", viewer_url,
+            ]
+        )  # fmt: skip
+        received = controller.estimates()
+    finally:
+        controller.close()
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    n = len(session.frames)
+    assert f"{n} of {n} frames processed, {n} with an estimate" in captured.out
+    assert "(source exhausted)" in captured.out
+    # The viewer that is not running: one line, and the run went on.
+    assert captured.err.count("no rerun viewer") == 1 and viewer_url in captured.err
+    assert "Traceback" not in captured.err
+    assert [m.sequence for m in received] == list(range(n)) and all(m.valid for m in received)
+    np.testing.assert_allclose([m.time_s for m in received], [f.time_s for f in session.frames])
+    rows = entity_rows(rrd)
+    for entity in ("/world/catheter/estimate", "/views/front/segmented", "/series/error/ukf"):
+        assert rows.get(entity, 0) >= n - 1, entity
+    with open_recording(mcap) as recording:
+        assert len(recording) == n
+        assert len(recording.estimates["ukf"]) == n
+
+
+def test_track_takes_markers_and_joints_over_udp(recorded, capsys):
+    session, _, rig = recorded
+    frames = session.frames[:20]  # 1 s: the joint history (2 s at 1 kHz) holds it all
+    markers_port, joints_port = free_port(), free_port()
+    controller = Controller()
+    argv = [
+        "track",
+        "--markers-port", str(markers_port),
+        "--joints-port", str(joints_port),
+        "--joint-clock", "sender",
+        "--rig", str(rig),
+        "--rig-model", "orthographic",
+        "--estimate-to", f"{LOOPBACK}:{controller.port}",
+        "--max-frames", str(len(frames)),
+        "--idle-timeout", "20",
+    ]  # fmt: skip
+    result = {}
+    thread = threading.Thread(target=lambda: result.setdefault("code", main(argv)))
+    thread.start()
+    try:
+        deadline = time.monotonic() + 20.0
+        while not all(port_in_use(p) for p in (markers_port, joints_port)):
+            assert thread.is_alive() and time.monotonic() < deadline, "track did not listen"
+            thread.join(0.01)  # let it start
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as robot:
+            from tracker.sources import session_joints
+
+            # 100 Hz up to 1 s, in one burst: it fits the default socket buffer (1 kHz live
+            # streaming is tested in test_live.py).
+            for k in range(101):
+                t = k / 100
+                robot.sendto(encode_joints(k, t, *session_joints(t)), (LOOPBACK, joints_port))
+            for k, frame in enumerate(frames):
+                data = encode_markers(k, frame.time_s, frame.uv_front, frame.uv_side, 0.3, 0.3)
+                robot.sendto(data, (LOOPBACK, markers_port))
+        thread.join(30.0)
+        assert not thread.is_alive()
+        received = controller.estimates()
+    finally:
+        controller.close()
+    out = capsys.readouterr().out
+    assert result["code"] == 0
+    assert "(max frames)" in out and f"{len(frames)} of {len(frames)} frames processed" in out
+    assert "markers on udp://127.0.0.1:" in out and "0 frames with stale joints" in out
+    assert len(received) == len(frames) and all(m.status == 0 for m in received)
+    errors = wrap_angle(
+        np.array([m.delta_L_rad for m in received[5:]])
+        - np.array([f.delta_L_true_rad for f in frames[5:]])
+    )
+    assert np.degrees(np.max(np.abs(errors))) < 10.0
+    assert not port_in_use(markers_port) and not port_in_use(joints_port)  # released
+
+
+def port_in_use(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind((LOOPBACK, port))
+        except OSError:
+            return True
+        return False
+
+
+def test_track_errors_a_user_can_cause_are_one_line(recorded, capsys):
+    _, path, rig = recorded
+    assert main(["track", "--rig", str(rig)]) == 2
+    assert main(["track", "--recording", str(path), "--markers-port", "1"]) == 2
+    assert main(["track", "--markers-port", str(free_port())]) == 2  # no rig
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("cathtrack track: error: ") for line in err)
+    assert "give one source of frames" in err[0] and "(got recording, markers)" in err[1]
+    assert "--rig FILE" in err[2]
+
+
+def test_ctrl_c_stops_track_prints_the_summary_and_closes_the_files(recorded, tmp_path):
+    _, path, _ = recorded
+    rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
+    command = [
+        sys.executable, "-m", "tracker.cli", "track",
+        "--recording", str(path), "--speed", "0.5",
+        "--estimate-to", "off", "--save", str(rrd), "--record", str(mcap),
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO, env=env
+    )
+    try:
+        # Raw reads: a buffered readline could hold the line while select waits for more.
+        deadline = time.monotonic() + 60.0
+        head = b""
+        while b"Ctrl-C to stop" not in head:
+            remaining = deadline - time.monotonic()
+            assert remaining > 0 and process.poll() is None, process.stderr.read()
+            ready, _, _ = select.select([process.stdout], [], [], remaining)
+            if ready:
+                head += os.read(process.stdout.fileno(), 65536)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = (text.decode() for text in process.communicate(timeout=60.0))
+        stdout = head.decode() + stdout
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 130, stderr
+    assert "live loop ended (interrupted)" in stdout and "Traceback" not in stderr
+    RrdReader(rrd).store()  # the .rrd has its footer
+    from replay.recording import open_recording
+
+    with open_recording(mcap) as recording:  # and the recording its summary
+        assert recording.report.ok
