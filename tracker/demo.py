@@ -287,7 +287,7 @@ class ScoreSink:
                 self.viewer.log_estimate(name, other, truth)
 
     def close(self) -> None:
-        pass
+        """Nothing to release: the viewer sink this one writes through is closed on its own."""
 
 
 # ------------------------------------------------------------------------------ report
