@@ -18,15 +18,10 @@ measured in the same run. Targets: UKF step median <= 150 us; baseline / UKF >= 
 from __future__ import annotations
 
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import rotate_z  # noqa: E402
@@ -39,10 +34,6 @@ N_BASELINE = 2_000
 DT_S = 0.04
 TARGET_UKF_US = 150.0
 TARGET_RATIO = 10.0
-
-
-def verdict(ok: bool) -> str:
-    return "PASS" if ok else "MISS"
 
 
 def frames(n: int, rng: np.random.Generator, catheter, independent_velocity: bool):

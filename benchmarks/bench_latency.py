@@ -23,13 +23,9 @@ import platform
 import socket
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
@@ -94,10 +90,10 @@ def run(label, items, scene, truth, segmenter=None) -> None:
     p50, p99, worst = percentiles_ms(latency)
     c50, c99, _ = percentiles_ms(cycle)
     rms = float(np.degrees(np.sqrt(np.nanmean(np.square(errors)))))
-    verdict = "PASS" if p99 <= TARGET_P99_MS else "MISS"
+    passed = verdict(p99 <= TARGET_P99_MS)
     print(
         f"{label:>13}: image -> estimate p50 {p50:6.2f} ms, p99 {p99:6.2f} ms (max {worst:6.2f})"
-        f" [{verdict} p99 <= {TARGET_P99_MS:g} ms]; -> sinks done p50 {c50:5.2f} ms,"
+        f" [{passed} p99 <= {TARGET_P99_MS:g} ms]; -> sinks done p50 {c50:5.2f} ms,"
         f" p99 {c99:5.2f} ms; delta_L RMS error {rms:.2f} deg over {len(latency)} frames"
     )
 

@@ -11,15 +11,10 @@ Run from the repository root: ``python benchmarks/bench_models.py``.
 from __future__ import annotations
 
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 
@@ -28,10 +23,6 @@ BATCH_REPEATS = 15
 TARGET_BATCH_PER_S = 1_000_000.0
 SINGLE_REPEATS = 20_000
 TARGET_SINGLE_US = 20.0
-
-
-def verdict(ok: bool) -> str:
-    return "PASS" if ok else "MISS"
 
 
 def blas_threads() -> str | None:

@@ -19,16 +19,12 @@ from __future__ import annotations
 
 import argparse
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from replay.evaluation import observations_batch, recording_scene  # noqa: E402
 from replay.protocol import ProtocolSettings, simulate_protocol  # noqa: E402
@@ -87,10 +83,10 @@ def bench_markers(directory: Path, configurations: int) -> None:
     print(f"  reconstruction, one batch        {_rate(n, best['reconstruct'])}")
     print(f"  (live loop: frame by frame       {_rate(n, best['observe'])})")
     print(f"  UKF step                         {_rate(n, best['ukf'])}")
-    verdict = "PASS" if n / total >= TARGET_FRAMES_PER_S else "MISS"
+    passed = verdict(n / total >= TARGET_FRAMES_PER_S)
     print(
         f"  replay through the UKF           {_rate(n, total)}  target"
-        f" {TARGET_FRAMES_PER_S:.0f}: {verdict}"
+        f" {TARGET_FRAMES_PER_S:.0f}: {passed}"
     )
     ukf_us = 1e6 * best["ukf"] / n
     if ukf_us > UKF_BUDGET_US:

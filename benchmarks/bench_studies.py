@@ -19,15 +19,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from replay.studies import (  # noqa: E402
     SensitivitySettings,
@@ -45,10 +40,6 @@ from tracker.ukf import BendingPlaneUKF  # noqa: E402
 
 TARGET_S = 60.0
 AGREEMENT_TOLERANCE_RAD = 1e-3
-
-
-def verdict(ok: bool) -> str:
-    return "PASS" if ok else "MISS"
 
 
 def ukf_step_costs(settings: SensitivitySettings, looped_trials: int, repeats: int = 5) -> None:

@@ -33,10 +33,7 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402

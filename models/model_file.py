@@ -58,17 +58,27 @@ def _segment(table: Any, where: str) -> ModalSegment:
         raise ModelFileError(f"{where}: {exc}") from None
 
 
+def check_header(
+    data: dict[str, Any], fmt: str, version: int, source: str, error: type, what: str
+) -> None:
+    """Check the ``format`` and ``version`` keys every cathtrack TOML file starts with.
+
+    Raises ``error`` (a ValueError subclass) naming the file and the key.
+    """
+    found = data.get("format")
+    if found != fmt:
+        raise error(f"{source}: 'format' must be \"{fmt}\", got {found!r}")
+    found = data.get("version")
+    if found != version:
+        raise error(
+            f"{source}: unsupported {what} version {found!r} (this cathtrack reads version "
+            f"{version})"
+        )
+
+
 def catheter_from_dict(data: dict[str, Any], source: str = "model") -> Catheter:
     """Build and validate a catheter from the parsed TOML tables."""
-    fmt = data.get("format")
-    if fmt != MODEL_FORMAT:
-        raise ModelFileError(f"{source}: 'format' must be \"{MODEL_FORMAT}\", got {fmt!r}")
-    version = data.get("version")
-    if version != MODEL_VERSION:
-        raise ModelFileError(
-            f"{source}: unsupported model version {version!r} (this cathtrack reads version "
-            f"{MODEL_VERSION})"
-        )
+    check_header(data, MODEL_FORMAT, MODEL_VERSION, source, ModelFileError, "model")
     proximal = _segment(_require(data, "proximal", source), f"{source} [proximal]")
     distal = _segment(_require(data, "distal", source), f"{source} [distal]")
     delta_2 = data.get("delta_2_rad", 0.0)

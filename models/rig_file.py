@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from models.imaging import BiplaneRig, OrthographicPlane, PinholeView
+from models.model_file import check_header
 
 Array = np.ndarray
 
@@ -153,15 +154,7 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinho
     """
     if model not in MODELS:
         raise ValueError(f"unknown rig model {model!r}; use one of {', '.join(MODELS)}")
-    fmt = data.get("format")
-    if fmt != RIG_FORMAT:
-        raise RigFileError(f"{source}: 'format' must be \"{RIG_FORMAT}\", got {fmt!r}")
-    version = data.get("version")
-    if version != RIG_VERSION:
-        raise RigFileError(
-            f"{source}: unsupported rig version {version!r} (this cathtrack reads version"
-            f" {RIG_VERSION})"
-        )
+    check_header(data, RIG_FORMAT, RIG_VERSION, source, RigFileError, "rig")
     views = []
     for name in VIEW_NAMES:
         where = f"{source} [{name}]"

@@ -1521,16 +1521,13 @@ def figure_study_a(result: SensitivityResult):
     axes[0, 0].set_ylabel("bending-plane error |delta_L| (deg)")
     _legend(fig, axes)
     fig.suptitle("(a) error against segmentation noise", fontsize=11)
-    fig.text(
-        0.01,
-        -0.02,
-        _footnote(s, "noise per image axis in both views"),
-        fontsize=6.5,
-        ha="left",
-        va="top",
-        wrap=True,
-    )
+    _add_footnote(fig, _footnote(s, "noise per image axis in both views"))
     return fig
+
+
+def _add_footnote(fig, text: str) -> None:
+    """The small print under a figure: settings, units and what the lines mean."""
+    fig.text(0.01, -0.02, text, fontsize=6.5, ha="left", va="top", wrap=True)
 
 
 def figure_study_c(result: SensitivityResult):
@@ -1553,19 +1550,14 @@ def figure_study_c(result: SensitivityResult):
         axes[i, 0].set_ylabel("error |delta_L| (deg)")
     _legend(fig, axes)
     fig.suptitle("(c) error against tip deflection by contact", fontsize=11)
-    fig.text(
-        0.01,
-        -0.02,
+    _add_footnote(
+        fig,
         _footnote(
             s,
             f"noise {s.noise_mm:g} mm; in-plane: the catheter bends as if {s.deflection_joint}"
             " were larger than the model sees (the paper's experiment); out-of-plane: the tip is"
             " pushed normal to the bending plane (cantilever profile)",
         ),
-        fontsize=6.5,
-        ha="left",
-        va="top",
-        wrap=True,
     )
     return fig
 

@@ -1,0 +1,19 @@
+"""Shared by the benchmark scripts: run from a checkout without installing, and verdicts.
+
+Importing this module puts the repository root on ``sys.path`` so that ``python
+benchmarks/bench_*.py`` works from a plain checkout as well as from the project's venv.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def verdict(ok: bool) -> str:
+    """PASS or MISS against a benchmark target."""
+    return "PASS" if ok else "MISS"
