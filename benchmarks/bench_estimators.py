@@ -25,9 +25,9 @@ from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import rotate_z  # noqa: E402
-from tracker.estimators import make_estimator  # noqa: E402
-from tracker.observation import Observation, velocity_from_positions  # noqa: E402
-from tracker.ukf import BendingPlaneUKF, UKFSettings  # noqa: E402
+from tracker.estimators import make_estimator
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
+from tracker.types import Observation, velocity_from_positions
 
 N_FRAMES = 20_000
 N_BASELINE = 2_000

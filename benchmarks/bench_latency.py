@@ -2,16 +2,16 @@
 
 Run from the repository root: ``python benchmarks/bench_latency.py [--frames N]``.
 
-Two 640x480 rendered frames per step (replay.render, the default render rig), fed to
-:class:`tracker.live.LiveTracker` as they would come from two cameras: joint datagrams at
+Two 640x480 rendered frames per step (replay.simulation.render, the default render rig), fed to
+:class:`tracker.live.loop.LiveTracker` as they would come from two cameras: joint datagrams at
 1 kHz over loopback UDP (33 per frame, drained by the loop), the UKF, and the estimate
 datagram sent back over UDP. Latency is from the moment the image pair is handed to the loop
 to the estimate being ready (the number sent in the estimate datagram), and to every sink
 being done. Two runs:
 
-- ``segmentation``: the images are segmented in the loop (tracker.segmentation);
+- ``segmentation``: the images are segmented in the loop (tracker.vision.segmentation);
 - ``markers``: the same points segmented beforehand and handed over as
-  :class:`tracker.udp.SegmentedMarkers` (what an external segmenter sends).
+  :class:`tracker.io.udp.SegmentedMarkers` (what an external segmenter sends).
 
 Target: p99 <= 5 ms image -> estimate. The first 10 frames (UKF start) are left out.
 """
@@ -29,18 +29,14 @@ from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
-from replay.render import Renderer, default_render_rig  # noqa: E402
-from replay.simulator import default_scene  # noqa: E402
-from tracker.estimators import make_estimator  # noqa: E402
-from tracker.live import LiveTracker  # noqa: E402
-from tracker.pipeline import Reconstructor  # noqa: E402
-from tracker.sources import ImagePair, session_joints, simulated_session  # noqa: E402
-from tracker.udp import (  # noqa: E402
-    EstimateSender,
-    JointReceiver,
-    SegmentedMarkers,
-    encode_joints,
-)
+from replay.simulation.render import Renderer, default_render_rig
+from replay.simulation.simulator import default_scene
+from replay.simulation.sources import session_joints, simulated_session
+from tracker.estimators import make_estimator
+from tracker.io.udp import EstimateSender, JointReceiver, SegmentedMarkers, encode_joints
+from tracker.live.loop import LiveTracker
+from tracker.live.sources import ImagePair
+from tracker.reconstruction import Reconstructor
 
 TARGET_P99_MS = 5.0
 FRAME_RATE_HZ = 30.0
@@ -120,7 +116,7 @@ def main(argv=None) -> int:
     h, w = pairs[0].image_front.shape
     print(f"rendered {len(pairs)} pairs of {w}x{h} images in {time.perf_counter() - started:.1f} s")
     try:
-        from tracker.segmentation import PairSegmenter
+        from tracker.vision.segmentation import PairSegmenter
     except ImportError:
         PairSegmenter = None
     truth = session.delta_L_true_rad
@@ -139,7 +135,7 @@ def main(argv=None) -> int:
             )
         source = "segmented beforehand"
     else:
-        print("tracker.segmentation is not available: markers only (true points + 0.5 px)")
+        print("tracker.vision.segmentation is not available: markers only (true points + 0.5 px)")
         cov = np.tile(0.25 * np.eye(2), (3, 1, 1))
         markers = [
             SegmentedMarkers(f.time_s, *renderer.render(f.q, f.delta_L_true_rad, rng).points_px,

@@ -28,10 +28,10 @@ from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path
 
 from replay.evaluation import observations_batch, recording_scene  # noqa: E402
 from replay.protocol import ProtocolSettings, simulate_protocol  # noqa: E402
-from replay.recording import open_recording  # noqa: E402
 from replay.studies import single_blas_thread  # noqa: E402
-from tracker.estimators import make_estimator  # noqa: E402
-from tracker.pipeline import Reconstructor  # noqa: E402
+from tracker.estimators import make_estimator
+from tracker.io.recording import open_recording
+from tracker.reconstruction import Reconstructor
 
 TARGET_FRAMES_PER_S = 5000.0
 UKF_BUDGET_US = 1e6 / TARGET_FRAMES_PER_S
@@ -98,7 +98,7 @@ def bench_markers(directory: Path, configurations: int) -> None:
 
 
 def bench_images(directory: Path, configurations: int) -> None:
-    from tracker.segmentation import PairSegmenter
+    from tracker.vision.segmentation import PairSegmenter
 
     settings = ProtocolSettings(
         images=True,

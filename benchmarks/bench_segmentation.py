@@ -27,8 +27,8 @@ import numpy as np  # noqa: E402
 from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
-from replay.render import Renderer, default_render_rig  # noqa: E402
-from tracker.segmentation import PairSegmenter  # noqa: E402
+from replay.simulation.render import Renderer, default_render_rig  # noqa: E402
+from tracker.vision.segmentation import PairSegmenter  # noqa: E402
 
 TARGET_PAIR_MS = 3.0
 DISTINCT_FRAMES = 50

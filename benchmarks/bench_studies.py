@@ -6,7 +6,7 @@ Run from the repository root: ``python benchmarks/bench_studies.py`` (prints onl
   per-frame closed forms, the UKF on the first ``--ukf-trials`` trials of every point (default
   all 500), and the bounds) on a local process pool. Target: <= 60 s on a 2-core machine, pool
   start-up included.
-- The cost of one UKF step on one study task: ``tracker.ukf_batch.run_ukf_batch`` (all trials
+- The cost of one UKF step on one study task: ``run_ukf_batch`` (all trials
   of the task at once) against ``BendingPlaneUKF.step`` trial by trial on the same observations,
   and the largest difference of their final estimates.
 - The paper's least-squares baseline (scipy ``least_squares`` from delta_L = 0) on a subsample
@@ -36,7 +36,7 @@ from replay.studies import (  # noqa: E402
     study_points,
     ukf_errors,
 )
-from tracker.ukf import BendingPlaneUKF  # noqa: E402
+from tracker.estimators.ukf import BendingPlaneUKF
 
 TARGET_S = 60.0
 AGREEMENT_TOLERANCE_RAD = 1e-3

@@ -10,7 +10,7 @@ For ``--seconds`` of wall time, as on the bench:
 - a camera thread delivers image pairs at ``--fps`` (30) into a one-slot buffer, stamped at
   the scheduled exposure time, like two triggered cameras; a pair that the loop has not taken
   before the next one arrives is dropped (counted), as a camera driver does. Images are
-  rendered (replay.render) for a pool of ``--pool`` poses of one period of a periodic motion
+  rendered for a pool of ``--pool`` poses of one period of a periodic motion
   and cycled, or synthetic (``--images synthetic``: blank images and the true points handed
   over as already-segmented markers);
 - the loop segments (rendered images), reconstructs, runs the UKF and sends the estimates.
@@ -37,19 +37,20 @@ from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
-from replay.render import Renderer, default_render_rig  # noqa: E402
-from replay.simulator import default_scene  # noqa: E402
-from tracker.estimators import make_estimator  # noqa: E402
-from tracker.live import LiveTracker  # noqa: E402
-from tracker.pipeline import Reconstructor  # noqa: E402
-from tracker.sources import ImagePair, session_joints  # noqa: E402
-from tracker.udp import (  # noqa: E402
+from replay.simulation.render import Renderer, default_render_rig
+from replay.simulation.simulator import default_scene
+from replay.simulation.sources import session_joints
+from tracker.estimators import make_estimator
+from tracker.io.udp import (
     EstimateSender,
     JointReceiver,
     SegmentedMarkers,
     decode_estimate,
     encode_joints,
 )
+from tracker.live.loop import LiveTracker
+from tracker.live.sources import ImagePair
+from tracker.reconstruction import Reconstructor
 
 DELTA_L_TRUE_RAD = 2.0
 
@@ -142,7 +143,7 @@ def main(argv=None) -> int:
                 lambda stamp, uv=uv, cov=cov: SegmentedMarkers(stamp, uv[0], uv[1], cov, cov)
             )
     if args.images == "rendered":
-        from tracker.segmentation import PairSegmenter
+        from tracker.vision.segmentation import PairSegmenter
 
         segmenter = PairSegmenter(
             catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds

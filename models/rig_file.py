@@ -1,6 +1,6 @@
 """Reading a calibrated bi-plane rig from TOML (DESIGN.md sections 4 and 7).
 
-The format is documented in docs/vision.md; ``tracker.rig_calibration`` writes it. A rig file
+The format is documented in docs/vision.md; ``tracker.vision.rig_calibration`` writes it. A rig file
 holds, per view (``[front]`` and ``[side]``), a calibrated pinhole camera in OpenCV's
 conventions (image size, intrinsics, distortion, pose of {W} in the camera) and the normal
 ``normal_w`` of the imaging plane that the paper's orthographic model needs (the direction

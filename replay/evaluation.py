@@ -1,7 +1,7 @@
 """Run estimators over frames and summarise their accuracy; replay and evaluate recordings.
 
 The first part runs estimators over a sequence of frames (:func:`run_methods`) and tabulates
-their accuracy (:func:`markdown_table`). The second replays a recording (replay.recording)
+their accuracy (:func:`markdown_table`). The second replays a recording (tracker.io.recording)
 through the same pipeline as the live loop -- frames, optional segmentation of the images,
 reconstruction, every estimator -- and summarises each method's bending-plane error (the
 wrapped difference between estimated and true ``delta_1 = q_r + delta_L``, which is the
@@ -29,7 +29,9 @@ import numpy as np
 from models.bounds import crb_tip
 from models.catheter import Catheter
 from models.rotations import wrap_angle
-from replay.recording import (
+from replay.simulation.simulator import Scene
+from tracker.estimators import estimator_names, make_estimator
+from tracker.io.recording import (
     MarkerQuality,
     ReadReport,
     RecordedFrame,
@@ -37,15 +39,8 @@ from replay.recording import (
     RecordingError,
     open_recording,
 )
-from replay.simulator import Scene
-from tracker.estimators import estimator_names, make_estimator
-from tracker.observation import (
-    Estimate,
-    Flag,
-    Observation,
-    ViewMeasurement,
-)
-from tracker.pipeline import Frame, Reconstructor
+from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Flag, Frame, Observation, ViewMeasurement
 
 Array = np.ndarray
 
@@ -160,7 +155,7 @@ def observations_batch(reconstructor: Reconstructor, frames: Sequence[Frame]) ->
 
     The two-view reconstruction and its covariance run once over every point of every frame;
     the finite-difference velocities, single-view measurements and checks follow
-    :meth:`tracker.pipeline.Reconstructor.observe` exactly.
+    :meth:`tracker.reconstruction.Reconstructor.observe` exactly.
     """
     reconstructor.reset()
     if not frames:
@@ -296,7 +291,7 @@ def _segmented(
     progress: bool,
 ) -> list[RecordedFrame]:
     """Frames whose markers come from segmenting the recorded images (as the live loop does)."""
-    from tracker.segmentation import (
+    from tracker.vision.segmentation import (
         PairSegmenter,
         SegmentationSettings,
         segmentation_settings_from_dict,
@@ -1110,7 +1105,7 @@ def write_rrd(replay: Replay, path: Path, frame_every: int = 1) -> Path:
     views (with the images the replay kept), and every method's series."""
     import uuid
 
-    from tracker.viewer import RerunSink, default_blueprint, file_stream
+    from tracker.viewer.sink import RerunSink, default_blueprint, file_stream
 
     methods = list(replay.results)
     primary = "ukf" if "ukf" in methods else (methods[0] if methods else None)

@@ -19,8 +19,8 @@ simulated session does the same:
   label, are seen by the estimators and are not scored;
 - a segmentation-noise level and a tip deflection per configuration, cycled so that every
   plane sees every combination: markers only, Gaussian noise of ``noise_levels_mm`` (in the
-  image plane at the isocentre); with images, the rendered frames (replay.render) at sensor
-  noise ``image_noise_levels_gray``, segmented by tracker.segmentation as the live loop does;
+  image plane at the isocentre); with images, the rendered frames at sensor
+  noise ``image_noise_levels_gray``, segmented by tracker.vision.segmentation as the live loop does;
 - tip deflection by contact as the paper made it: the catheter bends as if its distal joint
   were ``q_d + offset`` while the recording reports the commanded ``q_d``.
 
@@ -44,8 +44,7 @@ from models.catheter import Catheter
 from models.imaging import BiplaneRig, default_orthographic_rig
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
 from models.rotations import wrap_angle
-from replay.recording import FrameLabels, MarkerQuality, RecordingWriter, rig_toml
-from replay.simulator import (
+from replay.simulation.simulator import (
     JointTrajectory,
     NoiseSettings,
     Scene,
@@ -53,7 +52,8 @@ from replay.simulator import (
     in_plane_joint_offset,
     simulate_frames,
 )
-from tracker.pipeline import Frame
+from tracker.io.recording import FrameLabels, MarkerQuality, RecordingWriter, rig_toml
+from tracker.types import Frame
 
 Array = np.ndarray
 
@@ -81,7 +81,7 @@ class ProtocolSettings:
     images : bool
         Render and record both camera images and segment them (pinhole rig only).
     rig : {"pinhole", "orthographic"}
-        The renderer's two 640x480 cameras (replay.render.default_render_rig), or the paper's
+        The renderer's two 640x480 cameras (``default_render_rig``), or the paper's
         orthographic planes (markers only).
     noise_levels_mm : tuple of float
         Markers only: segmentation noise sigma per configuration (cycled), mm in the image
@@ -306,7 +306,7 @@ class Protocol:
 
 def _scene(settings: ProtocolSettings, catheter: Catheter) -> Scene:
     if settings.rig == "pinhole":
-        from replay.render import default_render_rig
+        from replay.simulation.render import default_render_rig
 
         rig: BiplaneRig = default_render_rig()
     else:
@@ -478,8 +478,8 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
             model_joint_offset=offset,
         )
         return [(f, label, (None, None)) for f, label in zip(frames, labels, strict=True)]
-    from replay.render import Renderer, RenderSettings
-    from tracker.segmentation import PairSegmenter
+    from replay.simulation.render import Renderer, RenderSettings
+    from tracker.vision.segmentation import PairSegmenter
 
     renderer = Renderer(
         catheter,
@@ -507,7 +507,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
 
 def backgrounds(settings: ProtocolSettings, catheter: Catheter) -> tuple[Array, Array]:
     """The empty-scene priors of both cameras (the same for every noise level)."""
-    from replay.render import Renderer
+    from replay.simulation.render import Renderer
 
     scene = _scene(settings, catheter)
     renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=settings.seed)

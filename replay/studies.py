@@ -22,8 +22,8 @@ One trial
 Speed
     The per-frame closed forms run on all trials of a task at once (one batched
     reconstruction, one batched rotation fit), and so does the UKF: one filter per trial,
-    stepped together over the frames by :func:`tracker.ukf_batch.run_ukf_batch` (the same
-    filter as :class:`~tracker.ukf.BendingPlaneUKF`, to rounding). Only the optional
+    stepped together over the frames by :func:`tracker.estimators.ukf_batch.run_ukf_batch` (the same
+    filter as :class:`~tracker.estimators.ukf.BendingPlaneUKF`, to rounding). Only the optional
     least-squares baselines step trial by trial. The UKF and the baselines run on the first
     ``ukf_trials`` trials of every study point (by default all of them).
 
@@ -58,7 +58,7 @@ from models.catheter import Catheter, default_catheter
 from models.imaging import default_orthographic_rig, default_pinhole_rig
 from models.rotation_fit import rotation_fisher_information
 from models.rotations import wrap_angle
-from replay.simulator import (
+from replay.simulation.simulator import (
     FrameBatch,
     NoiseSettings,
     Scene,
@@ -69,9 +69,10 @@ from replay.simulator import (
     ramp,
     simulate_batch,
 )
-from tracker.estimators import PerFrameEstimator, closed_form_batch, make_estimator
-from tracker.observation import Observation, velocity_from_positions
-from tracker.ukf_batch import finite_difference_velocity, run_ukf_batch
+from tracker.estimators import make_estimator
+from tracker.estimators.per_frame import PerFrameEstimator, closed_form_batch
+from tracker.estimators.ukf_batch import finite_difference_velocity, run_ukf_batch
+from tracker.types import Observation, velocity_from_positions
 
 Array = np.ndarray
 
@@ -750,9 +751,9 @@ def stepped_errors(data: TrialData, method: str, trials: int) -> Array:
 def ukf_errors(data: TrialData, method: str, trials: int) -> Array:
     """Signed errors (rad) of the UKF after the last frame of each of the first trials.
 
-    :func:`tracker.ukf_batch.run_ukf_batch` runs one filter per trial on the observations
+    :func:`tracker.estimators.ukf_batch.run_ukf_batch` runs one filter per trial on the observations
     :meth:`TrialData.observations` makes (tip, markers, finite-difference velocity), all trials
-    at once; it is the same filter as :class:`~tracker.ukf.BendingPlaneUKF` stepped trial by
+    at once; it is the same filter as :class:`BendingPlaneUKF` stepped trial by
     trial (:func:`stepped_errors`). Invalid estimates are NaN.
     """
     settings = make_estimator(method, data.catheter).settings

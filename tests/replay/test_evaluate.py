@@ -11,11 +11,11 @@ import pytest
 from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig
 from replay import evaluation
+from replay.cli import main
 from replay.protocol import ProtocolSettings, build_protocol, simulate_protocol
-from replay.render import default_render_rig
-from replay.simulator import NoiseSettings, Scene, simulate_frames, sinusoidal
-from tracker.cli import main
-from tracker.pipeline import Reconstructor
+from replay.simulation.render import default_render_rig
+from replay.simulation.simulator import NoiseSettings, Scene, simulate_frames, sinusoidal
+from tracker.reconstruction import Reconstructor
 
 PAPER_METHODS = ["tip-position", "body-positions", "tip-velocity", "ukf"]
 
@@ -288,7 +288,7 @@ def test_rerun_sink_logs_frames_and_estimates_for_the_live_loop(tmp_path):
     from rerun.chunk import RrdReader
 
     from tracker.estimators import make_estimator
-    from tracker.viewer import RerunSink, default_blueprint, file_stream
+    from tracker.viewer.sink import RerunSink, default_blueprint, file_stream
 
     catheter = default_catheter()
     scene = Scene(catheter, default_render_rig(), np.eye(3), np.array([0.0, 0.0, -15.0]))

@@ -1,4 +1,4 @@
-"""Recordings (replay.recording): round trip, other readers, crash safety and bad input."""
+"""Recordings (tracker.io.recording): round trip, other readers, crash safety and bad input."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
-from replay import recording as rec
-from replay.recording import (
+from replay.simulation.render import default_render_rig
+from tracker.io import recording as rec
+from tracker.io.recording import (
     FrameLabels,
     MarkerQuality,
     RecordingError,
@@ -23,9 +24,7 @@ from replay.recording import (
     open_recording,
     rig_toml,
 )
-from replay.render import default_render_rig
-from tracker.observation import Estimate, Flag
-from tracker.pipeline import Frame
+from tracker.types import Estimate, Flag, Frame
 
 RIG = default_render_rig()
 R_W_B, O_B_W = np.eye(3), np.array([0.0, 0.0, -15.0])

@@ -5,7 +5,7 @@ import pytest
 
 from models.catheter import default_catheter
 from models.imaging import PinholeView
-from replay.render import (
+from replay.simulation.render import (
     CatheterPose,
     Renderer,
     RenderSettings,
@@ -19,7 +19,7 @@ from replay.render import (
     render_view,
     transmission,
 )
-from tracker.rig_calibration import find_corners
+from tracker.vision.rig_calibration import find_corners
 
 BASE_W = np.array([0.0, 0.0, -15.0])
 

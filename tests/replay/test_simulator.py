@@ -5,7 +5,7 @@ import pytest
 
 from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig, default_pinhole_rig
-from replay.simulator import (
+from replay.simulation.simulator import (
     NoiseSettings,
     base_rotation,
     bending_sweep,
@@ -24,7 +24,8 @@ from replay.simulator import (
     torsion_windup,
     true_points_b,
 )
-from tracker.pipeline import Frame, Reconstructor
+from tracker.reconstruction import Reconstructor
+from tracker.types import Frame
 
 DELTA_2 = [0.0, np.pi / 2]
 VIEWS = ["orthographic", "pinhole"]

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from replay.cli import main
 from replay.studies import (
     CSV_COLUMNS,
     SensitivitySettings,
@@ -22,9 +23,8 @@ from replay.studies import (
     study_points,
     ukf_errors,
 )
-from tracker.cli import main
 from tracker.estimators import make_estimator
-from tracker.pipeline import Reconstructor
+from tracker.reconstruction import Reconstructor
 
 # Small but statistically meaningful: every finding is checked on these seeded tables.
 SMALL = SensitivitySettings(

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from models.rig_file import RigFileError, load_rig, orthographic_plane
-from replay.render import (
+from replay.cli import main
+from replay.simulation.render import (
     RenderSettings,
     default_render_rig,
     look_at_board,
     render_background,
     render_checkerboard,
 )
-from tracker.cli import main
-from tracker.rig_calibration import (
+from tracker.vision.rig_calibration import (
     board_points,
     calibrate_camera,
     calibrate_rig,

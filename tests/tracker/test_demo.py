@@ -21,8 +21,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from models.rotations import wrap_angle
-from tracker.cli import main
-from tracker.udp import decode_estimate, encode_joints, encode_markers
+from replay.cli import main
+from tracker.io.udp import decode_estimate, encode_joints, encode_markers
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -123,8 +123,8 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
 def recorded(tmp_path_factory):
     """A 3 s recording of a simulated session (markers in mm) and its rig file."""
     from models.model_file import DEFAULT_MODEL_PATH
-    from replay.recording import RecordingWriter, rig_toml
-    from tracker.sources import simulated_session
+    from replay.simulation.sources import simulated_session
+    from tracker.io.recording import RecordingWriter, rig_toml
 
     folder = tmp_path_factory.mktemp("recorded")
     session = simulated_session(duration_s=3.0, frame_rate_hz=20.0, noise=0.3, seed=1)
@@ -144,7 +144,7 @@ def recorded(tmp_path_factory):
 def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
     recorded, tmp_path, capsys
 ):
-    from replay.recording import open_recording
+    from tracker.io.recording import open_recording
 
     session, path, _ = recorded
     controller = Controller()
@@ -209,7 +209,7 @@ def test_track_takes_markers_and_joints_over_udp(recorded, capsys):
             assert thread.is_alive() and time.monotonic() < deadline, "track did not listen"
             thread.join(0.01)  # let it start
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as robot:
-            from tracker.sources import session_joints
+            from replay.simulation.sources import session_joints
 
             # 100 Hz up to 1 s, in one burst: it fits the default socket buffer (1 kHz live
             # streaming is tested in test_live.py).
@@ -261,7 +261,7 @@ def test_ctrl_c_stops_track_prints_the_summary_and_closes_the_files(recorded, tm
     _, path, _ = recorded
     rrd, mcap = tmp_path / "live.rrd", tmp_path / "live.mcap"
     command = [
-        sys.executable, "-m", "tracker.cli", "track",
+        sys.executable, "-m", "replay.cli", "track",
         "--recording", str(path), "--speed", "0.5",
         "--estimate-to", "off", "--save", str(rrd), "--record", str(mcap),
     ]  # fmt: skip
@@ -289,7 +289,7 @@ def test_ctrl_c_stops_track_prints_the_summary_and_closes_the_files(recorded, tm
     assert process.returncode == 130, stderr
     assert "live loop ended (interrupted)" in stdout and "Traceback" not in stderr
     RrdReader(rrd).store()  # the .rrd has its footer
-    from replay.recording import open_recording
+    from tracker.io.recording import open_recording
 
     with open_recording(mcap) as recording:  # and the recording its summary
         assert recording.report.ok

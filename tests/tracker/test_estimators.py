@@ -8,7 +8,7 @@ from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig, isotropic_covariance
 from models.rotations import wrap_angle
 from tracker.estimators import estimator_names, make_estimator
-from tracker.observation import Flag, Observation
+from tracker.types import Flag, Observation
 
 DELTA_2 = [0.0, np.pi / 2]
 BENT = [np.array([0.3, 0.8, 0.6]), np.array([-1.2, -0.7, 0.9])]

@@ -8,12 +8,12 @@ import pytest
 
 from models.catheter import default_catheter
 from models.rotations import rot_z
+from replay.simulation.sources import SimulatedSource, simulated_session
 from tracker.estimators import make_estimator
-from tracker.igtl import IgtlSink, bending_plane_transform_w, tip_transform_w
-from tracker.live import MemorySink, run_live
-from tracker.observation import Estimate, Flag
-from tracker.pipeline import Reconstructor
-from tracker.sources import SimulatedSource, simulated_session
+from tracker.io.igtl import IgtlSink, bending_plane_transform_w, tip_transform_w
+from tracker.live.loop import MemorySink, run_live
+from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Flag
 
 WAIT_S = 10.0  # generous: connections and messages normally take milliseconds
 

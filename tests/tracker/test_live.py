@@ -19,22 +19,15 @@ import pytest
 
 from models.imaging import isotropic_covariance
 from models.rotations import wrap_angle
-from replay.simulator import point_arclengths
-from tracker.estimators import make_estimator
-from tracker.live import CSV_COLUMNS, CsvSink, LiveStatus, LiveTracker, MemorySink, run_live
-from tracker.observation import Estimate, Flag
-from tracker.pipeline import Reconstructor
-from tracker.sources import (
-    ImagePair,
-    PacedSource,
+from replay.simulation.simulator import point_arclengths
+from replay.simulation.sources import (
     RenderedSource,
     SimulatedSource,
-    UdpMarkerSource,
-    VideoSource,
     session_joints,
     simulated_session,
 )
-from tracker.udp import (
+from tracker.estimators import make_estimator
+from tracker.io.udp import (
     EstimateSender,
     JointReceiver,
     JointStreamer,
@@ -43,6 +36,17 @@ from tracker.udp import (
     encode_joints,
     encode_markers,
 )
+from tracker.live.loop import (
+    CSV_COLUMNS,
+    CsvSink,
+    LiveStatus,
+    LiveTracker,
+    MemorySink,
+    run_live,
+)
+from tracker.live.sources import ImagePair, PacedSource, UdpMarkerSource, VideoSource
+from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Flag
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -186,7 +190,7 @@ class LiveMarkers:
                 v.project(points_w) + self.noise * self.rng.standard_normal((arclengths.size, 2))
                 for v in (scene.rig.front, scene.rig.side)
             ]
-            from tracker.udp import SegmentedMarkers
+            from tracker.io.udp import SegmentedMarkers
 
             yield SegmentedMarkers(t, uv[0], uv[1], cov, cov)
 
@@ -336,9 +340,9 @@ def write_video(path, images, fps=20.0):
 def rendered():
     """Rendered images of a short session, the renderer and its segmenter."""
     from models.catheter import default_catheter
-    from replay.render import Renderer, default_render_rig
-    from replay.simulator import default_scene
-    from tracker.segmentation import PairSegmenter
+    from replay.simulation.render import Renderer, default_render_rig
+    from replay.simulation.simulator import default_scene
+    from tracker.vision.segmentation import PairSegmenter
 
     catheter = default_catheter()
     scene = default_scene(catheter, default_render_rig())
@@ -553,9 +557,9 @@ def test_loop_object_can_be_stepped_by_hand(noisy_session):
 def test_a_recorded_live_session_replays_to_the_same_estimates(exact_session, controller, tmp_path):
     """RecordingSink writes the raw joints and the frames; RecordingSource plays them back."""
     from models.model_file import DEFAULT_MODEL_PATH
-    from replay.recording import RecordingWriter, rig_toml
-    from tracker.live import RecordingSink
-    from tracker.sources import RecordingSource
+    from tracker.io.recording import RecordingWriter, rig_toml
+    from tracker.live.loop import RecordingSink
+    from tracker.live.sources import RecordingSource
 
     session = exact_session
     scene = session.scene
@@ -602,8 +606,8 @@ def test_a_recorded_live_session_replays_to_the_same_estimates(exact_session, co
 
 
 def test_rerun_viewer_as_a_live_sink_writes_an_rrd(noisy_session, tmp_path):
-    from tracker.live import RerunLiveSink
-    from tracker.viewer import RerunSink, file_stream
+    from tracker.live.loop import RerunLiveSink
+    from tracker.viewer.sink import RerunSink, file_stream
 
     path = tmp_path / "live.rrd"
     viewer = RerunSink(file_stream(path))
@@ -625,9 +629,10 @@ SIGINT_SCRIPT = textwrap.dedent(
     import sys
 
     from tracker.estimators import make_estimator
-    from tracker.live import LiveTracker
-    from tracker.pipeline import Reconstructor
-    from tracker.sources import PacedSource, simulated_session
+    from tracker.live.loop import LiveTracker
+    from replay.simulation.sources import simulated_session
+    from tracker.live.sources import PacedSource
+    from tracker.reconstruction import Reconstructor
 
     class FileSink:
         name = "file"

@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 from models.catheter import default_catheter
 from models.rotations import rot_y, rot_z, rotate_z
 from tracker.estimators import make_estimator
-from tracker.observation import Flag, Observation, ViewMeasurement
-from tracker.ukf import BendingPlaneUKF, UKFSettings
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
+from tracker.types import Flag, Observation, ViewMeasurement
 
 NOISE_SHAPE = np.diag([1.0, 1.0, 0.5])
 DT_S = 0.04

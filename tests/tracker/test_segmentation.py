@@ -10,10 +10,10 @@ from models.catheter import default_catheter
 from models.imaging import BiplaneRig
 from models.rig_file import orthographic_rig, plane_from_pixels
 from models.rotations import wrap_angle
-from replay.render import Renderer, default_render_rig, far_view, render_view
+from replay.simulation.render import Renderer, default_render_rig, far_view, render_view
 from tracker.estimators import make_estimator
-from tracker.pipeline import Reconstructor
-from tracker.segmentation import (
+from tracker.reconstruction import Reconstructor
+from tracker.vision.segmentation import (
     PairSegmenter,
     SegmentationFlag,
     SegmentationSettings,

@@ -9,8 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from tracker.observation import Estimate, Flag
-from tracker.udp import (
+from tracker.io.udp import (
     ESTIMATE_STRUCT,
     JOINT_MAGIC,
     JOINT_STRUCT,
@@ -32,6 +31,7 @@ from tracker.udp import (
     encode_segmented,
     marker_datagram_size,
 )
+from tracker.types import Estimate, Flag
 
 LOOPBACK = "127.0.0.1"
 

@@ -18,8 +18,14 @@ from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig, default_pinhole_rig
 from models.rotations import rot_y, rot_z, rotate_z, wrap_angle
 from tracker.estimators import make_estimator
-from tracker.observation import Flag, Observation, ViewMeasurement
-from tracker.ukf import BendingPlaneUKF, UKFSettings, gate_threshold, sigma_sqrt, spd_inverse
+from tracker.estimators.ukf import (
+    BendingPlaneUKF,
+    UKFSettings,
+    gate_threshold,
+    sigma_sqrt,
+    spd_inverse,
+)
+from tracker.types import Flag, Observation, ViewMeasurement
 
 DELTA_2 = [0.0, np.pi / 2]
 BENT = np.array([0.3, 0.8, 0.6])
@@ -603,8 +609,8 @@ def test_persistent_model_mismatch_is_accepted_with_inflated_uncertainty():
     measurement noise inflated by the misfit, flags MODEL_MISMATCH, and stays consistent."""
     from models.imaging import default_orthographic_rig
     from replay.evaluation import observations_from_frames
-    from replay.simulator import NoiseSettings, default_scene, hold, simulate_frames
-    from tracker.pipeline import Reconstructor
+    from replay.simulation.simulator import NoiseSettings, default_scene, hold, simulate_frames
+    from tracker.reconstruction import Reconstructor
 
     catheter = default_catheter()
     scene = default_scene(catheter, default_orthographic_rig())

@@ -17,9 +17,9 @@ import pytest
 
 from models.catheter import default_catheter
 from models.rotations import rotate_z, wrap_angle
-from tracker.observation import Flag, Observation, velocity_from_positions
-from tracker.ukf import BendingPlaneUKF, UKFSettings
-from tracker.ukf_batch import finite_difference_velocity, run_ukf_batch
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
+from tracker.estimators.ukf_batch import finite_difference_velocity, run_ukf_batch
+from tracker.types import Flag, Observation, velocity_from_positions
 
 DELTA_2 = [0.0, np.pi / 2]
 DT_S = 0.05

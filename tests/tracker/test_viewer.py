@@ -1,4 +1,4 @@
-"""tracker.viewer: the +/-2 sigma fan, the default blueprint, closing a stream, rerun outputs.
+"""tracker.viewer.sink: the +/-2 sigma fan, the default blueprint, closing a stream, rerun outputs.
 
 Recordings are read back with rerun's own reader (``rerun.chunk.RrdReader``), not a mock.
 """
@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader
 
 from models.catheter import default_catheter
 from models.rotations import rot_z, wrap_angle
-from tracker.viewer import (
+from tracker.viewer.sink import (
     PLANE_FAN,
     LiveViewerSink,
     RerunSink,
@@ -119,15 +119,15 @@ def test_the_live_blueprint_shows_the_scene_both_cameras_and_every_series(tmp_pa
 # ---------------------------------------------------------------------- a session logged
 @pytest.fixture(scope="module")
 def session():
-    from tracker.sources import simulated_session
+    from replay.simulation.sources import simulated_session
 
     return simulated_session(duration_s=1.0, frame_rate_hz=20.0, noise=0.3, seed=3)
 
 
 def test_live_viewer_sink_logs_the_loop_and_close_completes_the_rrd(session, tmp_path):
     from tracker.estimators import make_estimator
-    from tracker.live import run_live
-    from tracker.pipeline import Reconstructor
+    from tracker.live.loop import run_live
+    from tracker.reconstruction import Reconstructor
 
     scene = session.scene
     path = tmp_path / "live.rrd"
@@ -202,7 +202,7 @@ def test_a_viewer_that_goes_away_is_reported_once_and_its_return_too(session, tm
     frames = iter(session.frames)
 
     def step():
-        from tracker.observation import Estimate
+        from tracker.types import Estimate
 
         frame = next(frames)
         sink.handle(frame, None, Estimate(frame.time_s, 2.0, 0.1, float(frame.q[0])), 0.004)

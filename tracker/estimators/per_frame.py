@@ -25,7 +25,7 @@ from models.bounds import information_from_covariance
 from models.catheter import Catheter, ShapeVectors
 from models.rotation_fit import fit_rotation_z, rotation_fisher_information
 from models.rotations import rotate_z, wrap_angle
-from tracker.observation import Estimate, Flag, Observation
+from tracker.types import Estimate, Flag, Observation
 
 Array = np.ndarray
 
@@ -220,32 +220,7 @@ def predicted_measurement(c: Array, q_r_rad: Array, delta_L_rad: Array) -> Array
     return rotate_z(c, np.asarray(q_r_rad) + np.asarray(delta_L_rad))
 
 
-PER_FRAME_NAMES = {
-    f"{label}{suffix}": (kind, solver)
-    for kind, label in PerFrameEstimator.NAMES.items()
-    for suffix, solver in (("", "closed-form"), ("-lsq", "least-squares"))
-}
 
 
-def estimator_names() -> list[str]:
-    """Every name :func:`make_estimator` accepts."""
-    return sorted(PER_FRAME_NAMES) + ["ukf", "ukf-position"]
 
 
-def make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
-    """Build an estimator by name (see :func:`estimator_names`)."""
-    if name in PER_FRAME_NAMES:
-        if settings:
-            raise ValueError(f"estimator {name!r} takes no settings, got {sorted(settings)}")
-        kind, solver = PER_FRAME_NAMES[name]
-        return PerFrameEstimator(catheter, kind, solver)
-    if name in ("ukf", "ukf-position"):
-        from tracker.ukf import BendingPlaneUKF, UKFSettings
-
-        ukf_settings = UKFSettings(**settings)
-        if name == "ukf-position":
-            from dataclasses import replace
-
-            ukf_settings = replace(ukf_settings, use_velocity=False)
-        return BendingPlaneUKF(catheter, ukf_settings, name=name)
-    raise ValueError(f"unknown estimator {name!r}; choose from {', '.join(estimator_names())}")

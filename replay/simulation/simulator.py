@@ -22,7 +22,7 @@ from models.catheter import Catheter
 from models.imaging import BiplaneRig, OrthographicPlane, PinholeView, isotropic_covariance
 from models.modal import ModalSegment
 from models.rotations import rotate_z
-from tracker.pipeline import Frame
+from tracker.types import Frame
 
 JOINT_RANGE_MM = (-1.0, 1.0)
 """Range of q_p and q_d over which the default model is defined, mm."""

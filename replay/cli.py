@@ -29,8 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"cathtrack {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    from tracker.demo import DEFAULT_RRD
-    from tracker.viewer import add_rerun_args
+    from replay.demo import DEFAULT_RRD
+    from tracker.viewer.sink import add_rerun_args
 
     demo = sub.add_parser(
         "demo",
@@ -249,7 +249,7 @@ def _add_calibrate(sub) -> None:
 
 
 def _run_calibrate(args: argparse.Namespace) -> int:
-    from tracker.rig_calibration import (
+    from tracker.vision.rig_calibration import (
         calibrate_folders,
         parse_board,
         report_lines,
@@ -466,7 +466,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from tracker.demo import DemoSettings, run_demo
+    from replay.demo import DemoSettings, run_demo
 
     settings = DemoSettings(
         seconds=args.seconds,
@@ -481,7 +481,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------ track
 def _add_track(sub) -> None:
-    from tracker.viewer import add_rerun_args
+    from tracker.viewer.sink import add_rerun_args
 
     p = sub.add_parser(
         "track",
@@ -693,12 +693,17 @@ def _run_track(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from models.model_file import DEFAULT_MODEL_PATH, load_catheter
-    from replay.simulator import Scene
+    from replay.simulation.simulator import Scene
     from tracker.estimators import make_estimator
-    from tracker.live import LiveTracker
-    from tracker.pipeline import Reconstructor
-    from tracker.udp import DEFAULT_JOINT_PORT, EstimateSender, JointReceiver
-    from tracker.viewer import LiveViewerSink, RerunSink, default_blueprint, open_rerun_output
+    from tracker.io.udp import DEFAULT_JOINT_PORT, EstimateSender, JointReceiver
+    from tracker.live.loop import LiveTracker
+    from tracker.reconstruction import Reconstructor
+    from tracker.viewer.sink import (
+        LiveViewerSink,
+        RerunSink,
+        default_blueprint,
+        open_rerun_output,
+    )
 
     report = _track_report
     kind = _track_source_kind(args)
@@ -713,7 +718,7 @@ def _run_track(args: argparse.Namespace) -> int:
         recording = None
         model_toml = None
         if kind == "recording":
-            from replay.recording import open_recording
+            from tracker.io.recording import open_recording
 
             recording = open_recording(args.recording)
             stack.callback(recording.close)
@@ -747,7 +752,7 @@ def _run_track(args: argparse.Namespace) -> int:
             stack.callback(sender.close)
             sinks.append(sender)
         if args.igtl_port is not None:
-            from tracker.igtl import IgtlSink
+            from tracker.io.igtl import IgtlSink
 
             igtl = IgtlSink(
                 catheter, R_w_b, o_b_w_mm, host=args.bind, port=args.igtl_port, report=report
@@ -791,15 +796,15 @@ def _run_track(args: argparse.Namespace) -> int:
             host, port = joints.address
             inputs.append(f"joints on udp://{host}:{port} ({args.joint_clock} clock)")
         if kind == "recording":
-            from tracker.sources import RecordingSource
+            from tracker.live.sources import RecordingSource
 
             want_images = viewer_sink is not None and not args.no_images
             source = RecordingSource(recording, speed=args.speed or None, images=want_images)
             pace = "full speed" if not args.speed else f"{args.speed:g}x real time"
             inputs.append(f"recording {args.recording} at {pace}")
         elif kind == "markers":
-            from tracker.sources import UdpMarkerSource
-            from tracker.udp import MarkerReceiver
+            from tracker.io.udp import MarkerReceiver
+            from tracker.live.sources import UdpMarkerSource
 
             receiver = MarkerReceiver(
                 args.bind, args.markers_port, n_points=1 + len(catheter.marker_arclengths_mm)
@@ -809,13 +814,13 @@ def _run_track(args: argparse.Namespace) -> int:
             host, port = receiver.address
             inputs.append(f"markers on udp://{host}:{port}")
         else:
-            from tracker.segmentation import (
+            from tracker.live.sources import VideoSource
+            from tracker.vision.segmentation import (
                 PairSegmenter,
                 SegmentationSettings,
                 load_segmentation_settings,
                 read_grayscale,
             )
-            from tracker.sources import VideoSource
 
             if args.backgrounds is None:
                 raise ValueError(
@@ -838,8 +843,8 @@ def _run_track(args: argparse.Namespace) -> int:
             inputs.append(f"{kind}s {specs[0]} and {specs[1]}")
 
         if args.record is not None:
-            from replay.recording import VIEWS, RecordingWriter, rig_toml
-            from tracker.live import RecordingSink
+            from tracker.io.recording import VIEWS, RecordingWriter, rig_toml
+            from tracker.live.loop import RecordingSink
 
             writer = RecordingWriter(
                 args.record,

@@ -7,7 +7,7 @@ rotation speed ``|q_r_dot|`` (torsion builds up while the base turns). Measureme
 ``c`` from :meth:`models.catheter.Catheter.shape_vectors` -- the tip, each segmented marker and
 the tip velocity are stacked into one update whose covariance is the joint one, including the
 cross-covariance between the velocity and the tip. When the views are not synchronised, each
-:class:`~tracker.observation.ViewMeasurement` is used through its own projection
+:class:`~tracker.types.ViewMeasurement` is used through its own projection
 ``view.project(R_w_b @ Rz(q_r + delta_L) c + o_b_w)``.
 
 A finite-difference velocity ``(tip_t - tip_{t-1}) / dt`` shares its noise with *both* tips.
@@ -20,7 +20,7 @@ an overconfident std, whereas a velocity with independent noise lowers the error
 The filter object is filterpy's :class:`~filterpy.kalman.UnscentedKalmanFilter` (its
 ``predict``, ``x`` and ``P``; the update is its equations with the per-sigma-point loops
 vectorised, see :class:`_AngleUKF`); this module wraps it so that nothing else touches its
-mutable attributes, and every step returns an :class:`~tracker.observation.Estimate` value.
+mutable attributes, and every step returns an :class:`~tracker.types.Estimate` value.
 
 Numerical notes
 ---------------
@@ -63,8 +63,8 @@ from scipy.stats import chi2
 
 from models.catheter import Catheter, ShapeVectors
 from models.rotation_fit import fit_rotation_z
-from tracker.estimators import UNINFORMATIVE_STD_RAD
-from tracker.observation import Estimate, Flag, Observation, ViewMeasurement
+from tracker.estimators.per_frame import UNINFORMATIVE_STD_RAD
+from tracker.types import Estimate, Flag, Observation, ViewMeasurement
 
 Array = np.ndarray
 
@@ -105,7 +105,7 @@ class UKFSettings:
         Fuse the tip velocity when the observation has one (see the next setting).
     velocity_is_finite_difference : bool
         The velocity is ``(tip_t - tip_{t-1}) / dt`` of this frame's and the previous frame's
-        tips (:func:`tracker.observation.velocity_from_positions`). Its noise then repeats the
+        tips (:func:`tracker.types.velocity_from_positions`). Its noise then repeats the
         previous tip's noise, which the filter has already fused if its previous step updated
         with that tip; the cross-covariance with the current tip cannot express this, and such
         a velocity carries no information beyond the two positions. Fusing it anyway counts the

@@ -181,3 +181,36 @@ class Estimate:
     @property
     def valid(self) -> bool:
         return bool(np.isfinite(self.delta_L_rad) and np.isfinite(self.std_rad))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One synchronised bi-plane frame.
+
+    Parameters
+    ----------
+    time_s : float
+        Image time stamp, s.
+    q, q_dot : arrays (3,)
+        Joint values and rates interpolated to ``time_s``.
+    uv_front, uv_side : arrays (1 + n_markers, 2)
+        Segmented image points, rows ``[tip, marker_0, ...]`` in the catheter's marker order;
+        mm in the plane (orthographic) or px (pinhole); NaN rows for points not found.
+    cov_front, cov_side : arrays (1 + n_markers, 2, 2)
+        Segmentation-noise covariances of those points.
+    images : tuple of two arrays, optional
+        The grayscale images, when the source has them.
+    delta_L_true_rad : float, optional
+        Ground truth, where known (simulation, phantom with a tracker).
+    """
+
+    time_s: float
+    q: Array
+    q_dot: Array | None
+    uv_front: Array
+    uv_side: Array
+    cov_front: Array
+    cov_side: Array
+    images: tuple[Array, Array] | None = None
+    delta_L_true_rad: float | None = None
+

@@ -33,8 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tracker.observation import Estimate
-from tracker.pipeline import Frame
+from tracker.types import Estimate, Frame
 
 Array = np.ndarray
 
@@ -520,8 +519,8 @@ class JointStreamer:
 
 # --------------------------------------------------------------------------------- estimates
 ESTIMATE_FLAG_BITS = 16
-"""Bits 0-15 of the estimate flags carry ``tracker.observation.Flag``; bits 16-30 the live
-loop's status (``tracker.live.LiveStatus``) shifted by 16; bit 31 says the estimate is valid."""
+"""Bits 0-15 of the estimate flags carry ``tracker.types.Flag``; bits 16-30 the live
+loop's status (``LiveStatus``) shifted by 16; bit 31 says the estimate is valid."""
 VALID_BIT = 1 << 31
 
 
@@ -650,7 +649,7 @@ class EstimateSender:
 class SegmentedMarkers:
     """Points of both views segmented elsewhere, without joint values.
 
-    Rows ``[tip, marker_0, ...]`` as in :class:`tracker.pipeline.Frame`; NaN rows for points
+    Rows ``[tip, marker_0, ...]`` as in :class:`tracker.types.Frame`; NaN rows for points
     not found. The live loop joins them with the joint values at ``time_s``.
     """
 

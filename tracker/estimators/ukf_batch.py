@@ -1,6 +1,6 @@
 """Many independent bending-plane UKFs at once, batched over trials (for Monte Carlo studies).
 
-:func:`run_ukf_batch` runs ``B`` independent copies of :class:`tracker.ukf.BendingPlaneUKF`
+:func:`run_ukf_batch` runs ``B`` independent copies of :class:`~BendingPlaneUKF`
 (one per trial) over ``T`` frames, with numpy over the trial axis instead of a Python loop of
 filter steps: the sensitivity studies step 228 study points x 500 trials x 10 frames, which
 trial by trial (about 100 us a step) takes minutes.
@@ -18,14 +18,14 @@ step follows :meth:`BendingPlaneUKF.step` branch for branch:
   the tip) and the finite-difference velocity rule (``velocity_is_finite_difference``: a
   velocity is fused only when the trial's previous step did not fuse a tip);
 - the same update: innovation covariance ``S`` factorised by Cholesky (retried once with the
-  documented jitter of :data:`tracker.ukf.COVARIANCE_JITTER`), gain and NIS from solves with
+  documented jitter of :data:`~ukf.COVARIANCE_JITTER`), gain and NIS from solves with
   that factor, the Fisher-information check (``uninformative_std_rad``), the NIS gate, the
   acceptance check of the posterior;
 - the same initialisation from the closed form (:func:`models.rotation_fit.fit_rotation_z`) on
   the first informative frame, the re-initialisation above ``reacquire_std_rad``, the
   re-initialisation after ``reacquire_after_rejections`` consecutive gate rejections, and the
   model-mismatch acceptance with its inflation (capped at
-  :data:`tracker.ukf.MAX_MISMATCH_SCALE`) and decay (:data:`tracker.ukf.MISMATCH_DECAY`);
+  :data:`~ukf.MAX_MISMATCH_SCALE`) and decay (:data:`~ukf.MISMATCH_DECAY`);
 - the covariance repair of the predict (last good state, re-initialised variance).
 
 Trials whose velocity is not fused in a frame carry the velocity rows padded with zeros (a
@@ -42,7 +42,7 @@ after its three steps, with costs equal to rounding; a one-ulp change of its inp
 move its answer by 1e-8 rad. The batched filter therefore gives it the UKF's inputs bit for bit
 (the model vectors from the single-configuration path of
 :meth:`~models.catheter.Catheter.shape_vectors`, with or without rates as the UKF calls it; the
-unpadded stack; :func:`tracker.ukf.spd_inverse`), and the fit of a batch is that of each trial.
+unpadded stack; :func:`~ukf.spd_inverse`), and the fit of a batch is that of each trial.
 
 Not supported (a ValueError says so): ``include_rate``, ``estimate_noise``, single-view
 measurements, and missing data (non-finite tips, markers or their covariances; a missing
@@ -59,8 +59,7 @@ from filterpy.kalman import MerweScaledSigmaPoints
 
 from models.catheter import Catheter
 from models.rotation_fit import fit_rotation_z
-from tracker.observation import Flag
-from tracker.ukf import (
+from tracker.estimators.ukf import (
     COVARIANCE_JITTER_FLOOR,
     MAX_MISMATCH_SCALE,
     MISMATCH_DECAY,
@@ -69,7 +68,8 @@ from tracker.ukf import (
     gate_threshold,
     spd_inverse,
 )
-from tracker.ukf import _cholesky_lower as cholesky_lower_jittered
+from tracker.estimators.ukf import _cholesky_lower as cholesky_lower_jittered
+from tracker.types import Flag
 
 Array = np.ndarray
 
@@ -90,14 +90,14 @@ _R_NOT_POSITIVE_DEFINITE = (
 
 @dataclass(frozen=True)
 class UKFBatchResult:
-    """Every trial's estimate after every frame, as :class:`tracker.observation.Estimate` says it.
+    """Every trial's estimate after every frame, as :class:`tracker.types.Estimate` says it.
 
     Attributes
     ----------
     delta_L_rad, std_rad : array, shape (B, T)
         Estimate of delta_L and its std, rad; NaN before the filter of the trial has started.
     flags : array of int, shape (B, T)
-        :class:`tracker.observation.Flag` values (``Flag(int(flags[b, t]))``).
+        :class:`tracker.types.Flag` values (``Flag(int(flags[b, t]))``).
     nis : array, shape (B, T)
         Normalised innovation squared of an update or a gate rejection; NaN otherwise.
     nis_dof : array of int, shape (B, T)
@@ -119,7 +119,7 @@ class UKFBatchResult:
         return np.isfinite(self.delta_L_rad) & np.isfinite(self.std_rad)
 
     def flag(self, trial: int, frame: int) -> Flag:
-        """The flags of one step as a :class:`~tracker.observation.Flag`."""
+        """The flags of one step as a :class:`~tracker.types.Flag`."""
         return Flag(int(self.flags[trial, frame]))
 
 
@@ -128,7 +128,7 @@ def finite_difference_velocity(
 ) -> tuple[Array, Array, Array]:
     """Every frame's finite-difference tip velocity, as the Reconstructor makes it.
 
-    Frame k > 0 gets :func:`tracker.observation.velocity_from_positions` of the tips of frames
+    Frame k > 0 gets :func:`tracker.types.velocity_from_positions` of the tips of frames
     k and k - 1; frame 0 has none (NaN).
 
     Parameters
@@ -259,7 +259,7 @@ def _cholesky(A: Array) -> tuple[Array, Array]:
     """Lower Cholesky factors of a stack (b, m, m) and which succeeded.
 
     One LAPACK call for the stack; only if some matrix is not positive definite, each is
-    factorised on its own with :func:`tracker.ukf._cholesky_lower`'s retry with jitter.
+    factorised on its own with :func:`~ukf._cholesky_lower`'s retry with jitter.
     """
     try:
         return np.linalg.cholesky(A), np.ones(A.shape[0], dtype=bool)
@@ -334,7 +334,7 @@ def _model_vectors(catheter: Catheter, q: Array, q_dot: Array | None) -> tuple:
 
 
 def _spd_inverses(R: Array) -> Array:
-    """:func:`tracker.ukf.spd_inverse` of every matrix of a stack (b, m, m), once per distinct one.
+    """:func:`~ukf.spd_inverse` of every matrix of a stack (b, m, m), once per distinct one.
 
     The closed form (:func:`models.rotation_fit.fit_rotation_z`) keeps the best of several
     Newton-polished candidates; two of them can reach the same minimum, one not quite converged

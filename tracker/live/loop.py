@@ -2,10 +2,10 @@
 
     source -> (segmentation, for images) -> Reconstructor -> estimator -> sinks
 
-The same :class:`~tracker.pipeline.Reconstructor` and estimators as replay; only the source
+The same :class:`~tracker.reconstruction.Reconstructor` and estimators as replay; only the source
 (cameras, UDP markers, a paced simulation or recording) and the sinks (UDP estimates,
 OpenIGTLink, rerun, recordings, CSV) differ. Joint values come from a
-:class:`~tracker.udp.JointReceiver`, interpolated to each image time stamp.
+:class:`~tracker.io.udp.JointReceiver`, interpolated to each image time stamp.
 
 Faults, each counted in the :class:`LiveSummary`:
 
@@ -40,10 +40,10 @@ from typing import Protocol
 
 import numpy as np
 
-from tracker.observation import Estimate, Flag, Observation
-from tracker.pipeline import Frame, Reconstructor
-from tracker.sources import ImagePair
-from tracker.udp import JointReceiver, JointStatus, SegmentedMarkers, StreamCounts
+from tracker.io.udp import JointReceiver, JointStatus, SegmentedMarkers, StreamCounts
+from tracker.live.sources import ImagePair
+from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Flag, Frame, Observation
 
 Array = np.ndarray
 
@@ -148,12 +148,12 @@ class CsvSink:
 
 
 class RerunLiveSink:
-    """A :class:`tracker.viewer.RerunSink` as a live-loop sink (the 3-D scene, images, series).
+    """A :class:`tracker.viewer.sink.RerunSink` as a live-loop sink (the 3-D scene, images, series).
 
     Parameters
     ----------
-    viewer : tracker.viewer.RerunSink
-    scene : replay.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
+    viewer : tracker.viewer.sink.RerunSink
+    scene : replay.simulation.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
     method : str
         Name of the estimator, for the time series.
     images : bool
@@ -179,7 +179,7 @@ class RerunLiveSink:
 
 
 class RecordingSink:
-    """Writes the session to an MCAP recording (:class:`replay.recording.RecordingWriter`).
+    """Writes the session to an MCAP recording (:class:`tracker.io.recording.RecordingWriter`).
 
     Per frame: the joint samples received since the previous frame (or, without a joint
     receiver, the frame's own joint values), the markers (and images), the estimate.
@@ -187,7 +187,7 @@ class RecordingSink:
 
     Parameters
     ----------
-    writer : replay.recording.RecordingWriter
+    writer : tracker.io.recording.RecordingWriter
     method : str
         Estimate topic ``/estimates/<method>``.
     joints : JointReceiver, optional
@@ -374,7 +374,7 @@ class LiveTracker:
         joint values (simulation, recordings) keep them when no receiver is given.
     segmenter : optional
         Anything with ``segment((image_front, image_side))`` returning an object with
-        ``uv_front, uv_side, cov_front, cov_side`` (:class:`tracker.segmentation.PairSegmenter`);
+        ``uv_front, uv_side, cov_front, cov_side`` (:class:`PairSegmenter`);
         needed when the source yields images.
     report : callable
         Receives one line per new problem (default: stderr).
@@ -561,7 +561,7 @@ class LiveTracker:
         Parameters
         ----------
         source : iterable
-            Items as described in :mod:`tracker.sources`.
+            Items as described in :mod:`tracker.live.sources`.
         idle_timeout_s : float, optional
             End when no item came for this long (sources yield ``None`` while idle).
         max_frames : int, optional

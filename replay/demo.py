@@ -1,12 +1,12 @@
 """``cathtrack demo``: the live loop end to end on an embedded simulated rig.
 
 A simulated controller streams the joint values of a session at 1 kHz as UDP datagrams over
-loopback; two simulated cameras (:mod:`replay.render`, the default rendering rig: 640x480,
+loopback; two simulated cameras (:mod:`~replay.simulation.render`, default rendering rig: 640x480,
 f = 2500 px, 400 mm away) render the bi-plane images of the catheter at 20 fps, rendered one
 pair at a time just before its exposure time and stamped on the same monotonic clock as the
-joints. The live loop (:class:`tracker.live.LiveTracker`, the same code as ``cathtrack
+joints. The live loop (:class:`tracker.live.loop.LiveTracker`, the same code as ``cathtrack
 track``) receives the joints on a real socket, interpolates them to each image time, segments
-each pair (:class:`tracker.segmentation.PairSegmenter`), reconstructs the markers, runs the
+each pair (:class:`tracker.vision.segmentation.PairSegmenter`), reconstructs the markers, runs the
 UKF and sends every estimate back to the controller as a UDP datagram. The closed-form Tip
 Position estimator runs on the same observations for comparison. Everything goes to rerun
 (an ``.rrd`` file, and a viewer if asked for); at the end the accuracy of each method and the
@@ -33,8 +33,8 @@ import numpy as np
 
 from models.catheter import default_catheter
 from models.rotations import wrap_angle
-from tracker.observation import Estimate
-from tracker.sources import ImagePair
+from tracker.live.sources import ImagePair
+from tracker.types import Estimate
 
 Array = np.ndarray
 
@@ -98,7 +98,7 @@ class SimulatedCameras:
 
     Parameters
     ----------
-    renderer : replay.render.Renderer
+    renderer : replay.simulation.render.Renderer
     frames : sequence of Frame
         The session's frames (their joints and truth; their segmented points are ignored).
     start_s : float
@@ -147,7 +147,7 @@ class SimulatedCameras:
 class SimulatedController:
     """The robot controller's side: joints out at 1 kHz, estimate datagrams in.
 
-    Joint datagrams come from a :class:`tracker.udp.JointStreamer` thread; a second thread
+    Joint datagrams come from a :class:`tracker.io.udp.JointStreamer` thread; a second thread
     receives the estimates on a loopback socket (OS-assigned port) and counts them.
 
     Parameters
@@ -168,7 +168,7 @@ class SimulatedController:
         rate_hz: float,
         start_s: float,
     ) -> None:
-        from tracker.udp import LOOPBACK, JointStreamer
+        from tracker.io.udp import LOOPBACK, JointStreamer
 
         self.streamer = JointStreamer(joints_to, joints_at, rate_hz, start_s=start_s)
         self.received = 0
@@ -190,7 +190,7 @@ class SimulatedController:
         return self
 
     def _receive(self) -> None:
-        from tracker.udp import DatagramError, decode_estimate
+        from tracker.io.udp import DatagramError, decode_estimate
 
         while not self._stop.is_set():
             try:
@@ -267,7 +267,7 @@ class ScoreSink:
     others : mapping of name to estimator
     truth : callable
         Image time -> true delta_L (rad) or None.
-    viewer : tracker.viewer.RerunSink, optional
+    viewer : tracker.viewer.sink.RerunSink, optional
     """
 
     name = "score"
@@ -399,22 +399,22 @@ def run_demo(
     ----------
     settings : DemoSettings
     rerun_args : argparse.Namespace
-        The flags of :func:`tracker.viewer.add_rerun_args` (``save``, ``connect``...).
+        The flags of :func:`tracker.viewer.sink.add_rerun_args` (``save``, ``connect``...).
     """
-    from replay.render import Renderer, default_render_rig
-    from replay.simulator import default_scene
+    from replay.simulation.render import Renderer, default_render_rig
+    from replay.simulation.simulator import default_scene
+    from replay.simulation.sources import session_joints, simulated_session
     from tracker.estimators import make_estimator
-    from tracker.live import LiveTracker
-    from tracker.pipeline import Reconstructor
-    from tracker.segmentation import PairSegmenter
-    from tracker.sources import session_joints, simulated_session
-    from tracker.udp import LOOPBACK, EstimateSender, JointReceiver
-    from tracker.viewer import (
+    from tracker.io.udp import LOOPBACK, EstimateSender, JointReceiver
+    from tracker.live.loop import LiveTracker
+    from tracker.reconstruction import Reconstructor
+    from tracker.viewer.sink import (
         LiveViewerSink,
         RerunSink,
         default_blueprint,
         open_rerun_output,
     )
+    from tracker.vision.segmentation import PairSegmenter
 
     catheter = default_catheter()
     scene = default_scene(catheter, default_render_rig())

@@ -3,8 +3,8 @@
 A source is an iterable of items, each one of
 
 - :class:`ImagePair` ``(time_s, image_front, image_side)``: grayscale images to segment;
-- :class:`tracker.udp.SegmentedMarkers`: points segmented elsewhere, without joint values;
-- :class:`tracker.pipeline.Frame`: a complete frame (simulation, recordings);
+- :class:`tracker.io.udp.SegmentedMarkers`: points segmented elsewhere, without joint values;
+- :class:`tracker.types.Frame`: a complete frame (simulation, recordings);
 - ``None``: nothing arrived within the source's poll interval (lets the loop drain the
   joint socket, honour Ctrl-C and time out while idle).
 
@@ -23,15 +23,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from models.catheter import Catheter, default_catheter
-from models.imaging import BiplaneRig, default_orthographic_rig
-from tracker.pipeline import Frame
-from tracker.udp import MarkerReceiver, SegmentedMarkers
+from tracker.io.udp import MarkerReceiver, SegmentedMarkers
+from tracker.types import Frame
 
 Array = np.ndarray
 
@@ -93,120 +90,16 @@ class PacedSource:
             yield item
 
 
-# -------------------------------------------------------------------------------- simulation
-@dataclass(frozen=True)
-class SimulatedSession:
-    """A simulated session: the scene, the commanded joints, the true delta_L and the frames."""
-
-    scene: object  # replay.simulator.Scene
-    trajectory: object  # replay.simulator.JointTrajectory
-    delta_L_true_rad: Array  # (T,)
-    frames: list[Frame]
 
 
-# The demo's motion: bending sweeps while the base turns back and forth (q_r rad, q_p, q_d mm).
-SESSION_MEAN = (0.0, 0.55, 0.2)
-SESSION_AMPLITUDE = (2.5, 0.35, 0.6)
-SESSION_PERIOD_S = (16.0, 9.0, 6.0)
 
 
-def session_joints(time_s: float | Array) -> tuple[Array, Array]:
-    """Joint values and rates of the simulated session's motion at any time, (..., 3) each.
-
-    The same formula as :func:`replay.simulator.sinusoidal`, for a simulated controller that
-    streams the joints at 1 kHz while the frames come at the image rate.
-    """
-    t = np.asarray(time_s, dtype=float)[..., None]
-    mean, amp = np.asarray(SESSION_MEAN), np.asarray(SESSION_AMPLITUDE)
-    omega = 2 * np.pi / np.asarray(SESSION_PERIOD_S)
-    return mean + amp * np.sin(omega * t), amp * omega * np.cos(omega * t)
 
 
-def simulated_session(
-    duration_s: float = 20.0,
-    frame_rate_hz: float = 20.0,
-    noise: float = 0.5,
-    seed: int = 0,
-    catheter: Catheter | None = None,
-    rig: BiplaneRig | None = None,
-) -> SimulatedSession:
-    """The demo's session: bending sweeps while the base turns, torsion wind-up with play.
-
-    Parameters
-    ----------
-    duration_s, frame_rate_hz : float
-    noise : float
-        Segmentation noise sigma in the rig's image unit (mm for the default orthographic rig).
-    seed : int
-    catheter, rig : optional
-        Default catheter model and orthographic rig.
-    """
-    from replay.simulator import (
-        NoiseSettings,
-        default_scene,
-        simulate_frames,
-        sinusoidal,
-        torsion_windup,
-    )
-
-    catheter = default_catheter() if catheter is None else catheter
-    rig = default_orthographic_rig() if rig is None else rig
-    scene = default_scene(catheter, rig)
-    trajectory = sinusoidal(
-        mean=list(SESSION_MEAN),
-        amplitude=list(SESSION_AMPLITUDE),
-        period_s=list(SESSION_PERIOD_S),
-        duration_s=duration_s,
-        frame_rate_hz=frame_rate_hz,
-    )
-    truth = torsion_windup(trajectory.q[:, 0], play_rad=np.radians(60), offset_rad=np.radians(120))
-    frames = simulate_frames(
-        scene, trajectory, truth, NoiseSettings(sigma=noise), np.random.default_rng(seed)
-    )
-    return SimulatedSession(scene, trajectory, truth, frames)
 
 
-class SimulatedSource(PacedSource):
-    """The frames of a simulated session, optionally paced at real time.
-
-    ``joints=False`` yields them as :class:`~tracker.udp.SegmentedMarkers` (no joint values)
-    for a loop that takes its joints from a :class:`~tracker.udp.JointReceiver`.
-    """
-
-    def __init__(
-        self, frames: Iterable[Frame], speed: float | None = 1.0, joints: bool = True, **kwargs
-    ) -> None:
-        if not joints:
-            frames = (
-                SegmentedMarkers(f.time_s, f.uv_front, f.uv_side, f.cov_front, f.cov_side, i)
-                for i, f in enumerate(frames)
-            )
-        super().__init__(frames, speed, **kwargs)
 
 
-class RenderedSource(PacedSource):
-    """Rendered bi-plane images of simulated frames (replay.render), as :class:`ImagePair`.
-
-    Parameters
-    ----------
-    renderer : replay.render.Renderer
-        Pinhole rig, catheter and background of the images.
-    frames : iterable of Frame
-        Joint values and true delta_L of each image (their segmented points are ignored).
-    seed : int
-        Seeds the sensor noise.
-    speed : float or None
-    """
-
-    def __init__(self, renderer, frames: Iterable[Frame], seed: int = 0, speed=1.0, **kwargs):
-        rng = np.random.default_rng(seed)
-
-        def pairs() -> Iterator[ImagePair]:
-            for f in frames:
-                images = renderer.render(f.q, f.delta_L_true_rad, rng).images
-                yield ImagePair(f.time_s, images[0], images[1])
-
-        super().__init__(pairs(), speed, **kwargs)
 
 
 # ---------------------------------------------------------------------------------- OpenCV
@@ -330,7 +223,7 @@ class VideoSource:
 
 # -------------------------------------------------------------------------------------- UDP
 class UdpMarkerSource:
-    """Segmented markers over UDP (:class:`~tracker.udp.MarkerReceiver`) as loop items.
+    """Segmented markers over UDP (:class:`~tracker.io.udp.MarkerReceiver`) as loop items.
 
     Yields ``None`` after every ``poll_s`` without a datagram, so the loop stays responsive and
     can end on its idle timeout.
@@ -368,7 +261,7 @@ class UdpMarkerSource:
 
 # -------------------------------------------------------------------------------- recordings
 class RecordingSource(PacedSource):
-    """The frames of an MCAP recording (:mod:`replay.recording`), paced at real time.
+    """The frames of an MCAP recording (:mod:`tracker.io.recording`), paced at real time.
 
     Frames come with the recorded markers and joint values (and images with ``images``);
     ``recording`` gives the CLI the recorded catheter model and rig
@@ -376,19 +269,19 @@ class RecordingSource(PacedSource):
 
     Parameters
     ----------
-    recording : str, Path or replay.recording.Recording
+    recording : str, Path or tracker.io.recording.Recording
     speed : float or None
     images : bool
         Decode the recorded images (for a viewer); the loop itself uses the recorded markers.
 
     Raises
     ------
-    replay.recording.RecordingError (a ValueError)
+    tracker.io.recording.RecordingError (a ValueError)
         Not a readable cathtrack recording.
     """
 
     def __init__(self, recording, speed: float | None = 1.0, images: bool = False, **kwargs):
-        from replay.recording import Recording, open_recording
+        from tracker.io.recording import Recording, open_recording
 
         if not isinstance(recording, Recording):
             recording = open_recording(recording)

@@ -17,7 +17,7 @@ The live loop and the offline replay share :class:`RerunSink`, which logs to an 
 
 Time is the ``time`` timeline (s since the start of the session) and the ``frame`` sequence.
 
-:class:`LiveViewerSink` is the live loop's rerun sink (:mod:`tracker.live`);
+:class:`LiveViewerSink` is the live loop's rerun sink (:mod:`tracker.live.loop`);
 :func:`add_rerun_args` and :func:`open_rerun_output` turn the usual rerun flags into the
 outputs of a command: an ``.rrd`` file, a viewer (connected to or spawned), a gRPC server for
 web viewers, or several at once.
@@ -40,8 +40,7 @@ import rerun.blueprint as rrb
 
 from models.imaging import PinholeView
 from models.rotations import wrap_angle
-from tracker.observation import Estimate, Observation
-from tracker.pipeline import Frame
+from tracker.types import Estimate, Frame, Observation
 
 Array = np.ndarray
 
@@ -361,7 +360,7 @@ class RerunSink:
             Its reconstruction (markers relative to the base, {B}).
         estimates : mapping of method name to Estimate
             This frame's estimates; the primary method's draws the catheter.
-        scene : replay.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
+        scene : replay.simulation.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
         images : bool
             Log the images (False: markers only, a lighter recording).
         """
@@ -614,7 +613,7 @@ class ViewerWatch:
 
 
 class LiveViewerSink:
-    """The rerun output as a live-loop sink (:mod:`tracker.live`).
+    """The rerun output as a live-loop sink (:mod:`tracker.live.loop`).
 
     Per frame: the 3-D scene at the estimate with the +/-2 sigma fan, the segmented and
     reprojected markers, the images (every ``image_every``-th frame), the series of delta_L,
@@ -624,7 +623,7 @@ class LiveViewerSink:
     Parameters
     ----------
     viewer : RerunSink
-    scene : replay.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
+    scene : replay.simulation.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
     method : str
         Name of the loop's estimator, for the series.
     images : bool
@@ -645,7 +644,7 @@ class LiveViewerSink:
 
     Attributes
     ----------
-    summary : tracker.live.LiveSummary or None
+    summary : tracker.live.loop.LiveSummary or None
         The loop's summary, for the dropped-frame series (set it once the loop is built).
     """
 
@@ -684,7 +683,7 @@ class LiveViewerSink:
         self.frames += 1
         self.viewer.log_frame(frame, observation, {self.method: estimate}, self.scene, images)
         self.viewer.log_estimate(self.method, estimate, frame.delta_L_true_rad)
-        # tracker.live.LiveStatus: STALE_JOINTS = 1, NO_JOINTS = 2 (the estimator only predicted).
+        # LiveStatus: STALE_JOINTS = 1, NO_JOINTS = 2 (the estimator only predicted).
         self._predict_only += bool(int(status) & 3)
         dropped = None if self.summary is None else self.summary.frames_dropped
         self.viewer.log_live(frame.time_s, latency_s, dropped, self._predict_only)

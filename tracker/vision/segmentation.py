@@ -33,7 +33,7 @@ hidden marker, a view where the catheter overlaps itself) or one ``ValueError`` 
 
 Points are in px (distorted pixels of the camera, as :class:`models.imaging.PinholeView`
 expects them); :func:`frame_points` and :func:`segment_pair` map them onto the rows
-``[tip, marker_0, ...]`` of :class:`tracker.pipeline.Frame`. Thresholds are
+``[tip, marker_0, ...]`` of :class:`tracker.types.Frame`. Thresholds are
 :class:`SegmentationSettings`, read from the ``[segmentation]`` table of a TOML file
 (docs/vision.md).
 """
@@ -53,7 +53,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from models.catheter import Catheter
 from models.imaging import BiplaneRig
-from tracker.pipeline import Frame
+from tracker.types import Frame
 
 Array = np.ndarray
 

@@ -22,7 +22,7 @@ raises :class:`RecordingError` with one clear message. Everything else that can 
 kept: a truncated file is read up to the last complete chunk (the report says how many
 seconds were lost), out-of-order messages are sorted, duplicated time stamps keep the first
 message, NaN values mark the points (or joint samples) as missing; each of these is counted
-once in :class:`ReadReport`. Frames come back as :class:`tracker.pipeline.Frame` -- the type
+once in :class:`ReadReport`. Frames come back as :class:`tracker.types.Frame` -- the type
 the live loop consumes -- with their joint values interpolated to the frame time, together
 with the experiment's labels.
 """
@@ -47,8 +47,7 @@ from models.catheter import Catheter
 from models.imaging import BiplaneRig, OrthographicPlane
 from models.model_file import ModelFileError, catheter_from_dict
 from models.rig_file import RIG_FORMAT, RIG_VERSION
-from tracker.observation import Estimate, Flag
-from tracker.pipeline import Frame
+from tracker.types import Estimate, Flag, Frame
 
 Array = np.ndarray
 
@@ -286,7 +285,7 @@ class MarkerQuality:
 
     @classmethod
     def from_segmentation(cls, view_segmentation) -> MarkerQuality:
-        """From a :class:`tracker.segmentation.ViewSegmentation`."""
+        """From a :class:`tracker.vision.segmentation.ViewSegmentation`."""
         flags = view_segmentation.flags
         names = tuple(f.name for f in type(flags) if f and f in flags and f.name)
         return cls(int(flags), names, float(view_segmentation.noise_sigma_gray))

@@ -33,7 +33,7 @@ from pyigtl.comm import OpenIGTLinkBase
 
 from models.catheter import Catheter
 from models.rotations import rot_z
-from tracker.observation import Estimate
+from tracker.types import Estimate
 
 Array = np.ndarray
 

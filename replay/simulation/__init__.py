@@ -1,0 +1,1 @@
+"""Simulated sessions: joint trajectories, torsion, noise, rendered bi-plane images."""

@@ -1,0 +1,41 @@
+"""Estimators of delta_L: per-frame closed forms and baselines, and the UKF.
+
+Every estimator has ``step(observation) -> Estimate`` and ``reset()``; :func:`make_estimator`
+builds one by name. To add an estimator, write it in a module of this package and add its name
+here (docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from models.catheter import Catheter
+from tracker.estimators.per_frame import Estimator, PerFrameEstimator
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
+
+PER_FRAME_NAMES = {
+    f"{label}{suffix}": (kind, solver)
+    for kind, label in PerFrameEstimator.NAMES.items()
+    for suffix, solver in (("", "closed-form"), ("-lsq", "least-squares"))
+}
+
+
+def estimator_names() -> list[str]:
+    """Every name :func:`make_estimator` accepts."""
+    return sorted(PER_FRAME_NAMES) + ["ukf", "ukf-position"]
+
+
+def make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
+    """Build an estimator by name (see :func:`estimator_names`)."""
+    if name in PER_FRAME_NAMES:
+        if settings:
+            raise ValueError(f"estimator {name!r} takes no settings, got {sorted(settings)}")
+        kind, solver = PER_FRAME_NAMES[name]
+        return PerFrameEstimator(catheter, kind, solver)
+    if name in ("ukf", "ukf-position"):
+        ukf_settings = UKFSettings(**settings)
+        if name == "ukf-position":
+            ukf_settings = replace(ukf_settings, use_velocity=False)
+        return BendingPlaneUKF(catheter, ukf_settings, name=name)
+    raise ValueError(f"unknown estimator {name!r}; choose from {', '.join(estimator_names())}")
+

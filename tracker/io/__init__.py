@@ -1,0 +1,1 @@
+"""Input and output: joint and estimate datagrams, OpenIGTLink, MCAP recordings."""

@@ -1,0 +1,1 @@
+"""The online loop: frame sources, the loop itself, and its sinks."""
