@@ -297,64 +297,131 @@ View = OrthographicPlane | PinholeView
 
 
 # ------------------------------------------------------------------------------------- rig
-@dataclass(frozen=True, eq=False)
-class BiplaneRig:
-    """Front and side views of the same kind, and reconstruction from the pair.
+DEFAULT_VIEW_NAMES = ("front", "side")
+"""Names of the views of a two-view rig: the paper's bi-plane case ({F} and {S})."""
+
+
+def default_view_names(n_views: int) -> tuple[str, ...]:
+    """``("front", "side")`` for two views, ``("view0", "view1", ...)`` otherwise."""
+    return DEFAULT_VIEW_NAMES if n_views == 2 else tuple(f"view{i}" for i in range(n_views))
+
+
+class Rig:
+    """Two or more named views of the same kind, and reconstruction from any two or more.
 
     Parameters
     ----------
-    front, side : OrthographicPlane or PinholeView
-        The two views ({F} and {S}); both orthographic or both pinhole.
+    *views : OrthographicPlane or PinholeView
+        The views, all orthographic or all pinhole; the paper's bi-plane rig is
+        ``Rig(front, side)``.
+    names : sequence of str, optional
+        One distinct name per view (:func:`default_view_names` by default). Every per-view
+        sequence in the data flow (image points, covariances, images, recording channels)
+        follows this order.
     """
 
-    front: View
-    side: View
-    _M: Array | None = field(init=False, repr=False, default=None)
+    __slots__ = ("views", "names", "_M", "_subsets")
 
-    def __post_init__(self) -> None:
-        for name, view in (("front", self.front), ("side", self.side)):
+    def __init__(self, *views: View, names=None) -> None:
+        if len(views) == 1 and isinstance(views[0], list | tuple):
+            views = tuple(views[0])
+        names = default_view_names(len(views)) if names is None else tuple(names)
+        if len(views) < 2:
+            raise ValueError(f"a rig needs at least two views, got {len(views)}")
+        if len(names) != len(views) or len(set(names)) != len(names):
+            raise ValueError(f"a rig needs one distinct name per view, got {names!r}")
+        for name, view in zip(names, views, strict=True):
+            if not isinstance(name, str) or not name.isidentifier():
+                raise ValueError(f"view name {name!r} must be a non-empty identifier")
             if not isinstance(view, OrthographicPlane | PinholeView):
                 raise TypeError(f"{name} must be an OrthographicPlane or a PinholeView")
-        if type(self.front) is not type(self.side):
-            raise ValueError(
-                "front and side views must be of the same kind, got"
-                f" {type(self.front).__name__} and {type(self.side).__name__}"
+        kinds = {type(v) for v in views}
+        if len(kinds) > 1:
+            kinds = [f"{n}: {type(v).__name__}" for n, v in zip(names, views, strict=True)]
+            raise ValueError("all views must be of the same kind, got " + " and ".join(kinds))
+        object.__setattr__(self, "views", tuple(views))
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "_subsets", {})
+        if isinstance(views[0], OrthographicPlane):
+            normals = [v.normal_w for v in views]
+            angle = max(
+                np.arctan2(np.linalg.norm(np.cross(a, b)), abs(a @ b))
+                for i, a in enumerate(normals)
+                for b in normals[i + 1 :]
             )
-        if self.kind == "orthographic":
-            n_f, n_s = self.front.normal_w, self.side.normal_w
-            angle = np.arctan2(np.linalg.norm(np.cross(n_f, n_s)), abs(n_f @ n_s))
             if angle < MIN_PLANE_ANGLE_RAD:
                 raise ValueError(
                     f"cannot reconstruct: imaging planes are parallel (normals"
                     f" {np.degrees(angle):.3g} deg apart, need at least"
                     f" {np.degrees(MIN_PLANE_ANGLE_RAD):.3g} deg)"
                 )
-            # eq. estDK: [P_f; P_s]^+ = (P_f + P_s)^-1 [P_f, P_s], and P U = U for in-plane axes U.
-            U = np.concatenate([self.front.R_w_view[:, :2], self.side.R_w_view[:, :2]], axis=1)
-            M = np.linalg.solve(self.front.projector_w + self.side.projector_w, U)
+            # eq. estDK: [P_1; ...; P_n]^+ = (sum P_v)^-1 [P_1, ..., P_n], and P U = U for the
+            # in-plane axes U of each plane.
+            U = np.concatenate([v.R_w_view[:, :2] for v in views], axis=1)
+            M = np.linalg.solve(sum(v.projector_w for v in views), U)
             object.__setattr__(self, "_M", _frozen(M))
         else:
-            baseline_mm = np.linalg.norm(self.front.center_w - self.side.center_w)
+            centres = [v.center_w for v in views]
+            baseline_mm = max(
+                np.linalg.norm(a - b) for i, a in enumerate(centres) for b in centres[i + 1 :]
+            )
             if baseline_mm < MIN_BASELINE_MM:
                 raise ValueError(
                     f"cannot reconstruct: camera centres are {baseline_mm:.3g} mm apart"
                     f" (coincident, or baseline below {MIN_BASELINE_MM} mm)"
                 )
+            object.__setattr__(self, "_M", None)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("a Rig is immutable")
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{n}={v!r}" for n, v in zip(self.names, self.views, strict=True))
+        return f"Rig({inner})"
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, name: str) -> View:
+        """The view called ``name``."""
+        return self.views[self.index(name)]
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            views = ", ".join(self.names)
+            raise KeyError(f"no view {name!r} in the rig (views: {views})") from None
+
+    @property
+    def n_views(self) -> int:
+        return len(self.views)
 
     @property
     def kind(self) -> str:
         """``"orthographic"`` or ``"pinhole"``."""
-        return "orthographic" if isinstance(self.front, OrthographicPlane) else "pinhole"
+        return "orthographic" if isinstance(self.views[0], OrthographicPlane) else "pinhole"
 
-    def project(self, points_w) -> tuple[Array, Array]:
-        """Images (front, side), each (..., 2) in mm or px, of points (..., 3) in {W}, mm."""
-        return self.front.project(points_w), self.side.project(points_w)
+    def subset(self, indices) -> Rig:
+        """The rig of the views ``indices`` (two or more), cached."""
+        key = tuple(int(i) for i in indices)
+        if key == tuple(range(len(self.views))):
+            return self
+        if key not in self._subsets:
+            self._subsets[key] = Rig(
+                *(self.views[i] for i in key), names=[self.names[i] for i in key]
+            )
+        return self._subsets[key]
+
+    def project(self, points_w) -> tuple[Array, ...]:
+        """Images, one (..., 2) array per view in mm or px, of points (..., 3) in {W}, mm."""
+        return tuple(view.project(points_w) for view in self.views)
 
     def reconstruction_matrix(self) -> Array:
-        """The linear map ``[u_f, v_f, u_s, v_s] -> x`` of eq. estDK, shape (3, 4).
+        """The linear map ``[u_1, v_1, ..., u_n, v_n] -> x`` of eq. estDK, shape (3, 2n).
 
-        It is ``[P_f; P_s]^+ blockdiag(R_w_f[:, :2], R_w_s[:, :2])``; because it is linear it
-        applies to difference vectors too. Orthographic rigs only.
+        It is ``[P_1; ...; P_n]^+ blockdiag(R_w_1[:, :2], ..., R_w_n[:, :2])``; because it is
+        linear it applies to difference vectors too. Orthographic rigs only.
         """
         if self._M is None:
             raise ValueError(
@@ -363,37 +430,37 @@ class BiplaneRig:
             )
         return np.array(self._M)
 
-    def reconstruct(self, uv_front, uv_side) -> Array:
-        """Points in {W} from their images in the two views.
+    def reconstruct(self, *uv) -> Array:
+        """Points in {W} from their images in every view.
 
         Parameters
         ----------
-        uv_front, uv_side : array, shape (..., 2)
-            Image points, mm in the plane (orthographic) or distorted px (pinhole); their
-            batch shapes broadcast.
+        *uv : arrays, shape (..., 2)
+            One per view, in the rig's order: image points, mm in the plane (orthographic)
+            or distorted px (pinhole); their batch shapes broadcast.
 
         Returns
         -------
         points_w : array, shape (..., 3)
             Reconstructed points in {W}, mm. Orthographic: eq. estDK,
-            ``x = [P_f; P_s]^+ [R_w_f (u_f, v_f, 0); R_w_s (u_s, v_s, 0)]``, which also maps
-            difference vectors (tip minus base). Pinhole: undistortion, then linear
-            triangulation (the least-squares solution of the four DLT equations in x).
+            ``x = [P_1; ...; P_n]^+ [R_w_1 (u_1, v_1, 0); ...]``, which also maps difference
+            vectors (tip minus base). Pinhole: undistortion, then linear triangulation (the
+            least-squares solution of the 2n DLT equations in x).
         """
-        uv_f = _checked(uv_front, "uv_front", (2,))
-        uv_s = _checked(uv_side, "uv_side", (2,))
+        if len(uv) != len(self.views):
+            raise ValueError(f"expected image points for {len(self.views)} views, got {len(uv)}")
+        uv = [_checked(u, f"uv_{n}", (2,)) for u, n in zip(uv, self.names, strict=True)]
         try:
-            batch = np.broadcast_shapes(uv_f.shape[:-1], uv_s.shape[:-1])
+            batch = np.broadcast_shapes(*(u.shape[:-1] for u in uv))
         except ValueError:
-            raise ValueError(
-                f"uv_front {uv_f.shape} and uv_side {uv_s.shape} batch shapes do not broadcast"
-            ) from None
-        uv_f, uv_s = np.broadcast_to(uv_f, batch + (2,)), np.broadcast_to(uv_s, batch + (2,))
+            shapes = ", ".join(f"{n} {u.shape}" for n, u in zip(self.names, uv, strict=True))
+            raise ValueError(f"image point batch shapes do not broadcast: {shapes}") from None
+        uv = [np.broadcast_to(u, batch + (2,)) for u in uv]
         if self._M is not None:
-            return np.concatenate([uv_f, uv_s], axis=-1) @ self._M.T
+            return np.concatenate(uv, axis=-1) @ self._M.T
         rows, rhs = [], []
-        for view, uv in ((self.front, uv_f), (self.side, uv_s)):
-            m = (view.undistort(uv) - view.K[:2, 2]) / np.diag(view.K)[:2]  # normalised coords
+        for view, u in zip(self.views, uv, strict=True):
+            m = (view.undistort(u) - view.K[:2, 2]) / np.diag(view.K)[:2]  # normalised coords
             R, t = view.R_cam_w, view.t_cam_w
             # x_cam[:2] = m x_cam[2] is linear in x: (m r_3 - r_12) x = t_12 - m t_3.
             rows.append(m[..., :, None] * R[2] - R[:2])
@@ -404,7 +471,7 @@ class BiplaneRig:
         if np.any(parallel):
             raise ValueError(
                 f"cannot triangulate {np.count_nonzero(parallel)} point(s): their viewing rays"
-                " are parallel (a point on the line through the two camera centres?)"
+                " are parallel (a point on the line through the camera centres?)"
             )
         y = np.einsum("...ji,...j->...i", U, b) / s
         return np.einsum("...ji,...j->...i", Vt, y)
@@ -426,17 +493,17 @@ class BiplaneRig:
         L_inv_cov = np.linalg.solve(L, cov)
         return A, np.linalg.solve(L, np.swapaxes(L_inv_cov, -1, -2))
 
-    def reconstruction_covariance(self, points_w, cov_front, cov_side) -> Array:
+    def reconstruction_covariance(self, points_w, *covs) -> Array:
         """3-D covariance of reconstructed points from the 2-D noise of each view.
 
         Parameters
         ----------
         points_w : array, shape (..., 3)
             Points in {W} (true or reconstructed), mm.
-        cov_front, cov_side : array, shape (2, 2) or (..., 2, 2)
-            Segmentation-noise covariances in each image, mm^2 (orthographic) or px^2
-            (pinhole); see :func:`isotropic_covariance` for a scalar sigma. Independent between
-            the views; may be singular.
+        *covs : arrays, shape (2, 2) or (..., 2, 2)
+            One per view: segmentation-noise covariances in each image, mm^2 (orthographic)
+            or px^2 (pinhole); see :func:`isotropic_covariance` for a scalar sigma.
+            Independent between the views; may be singular.
 
         Returns
         -------
@@ -445,27 +512,40 @@ class BiplaneRig:
 
         Notes
         -----
-        Both reconstructions are, to first order, the unweighted least-squares solution of
-        ``A_f dx = e_f, A_s dx = e_s`` (see ``_lateral_model``), so
+        Every reconstruction is, to first order, the unweighted least-squares solution of
+        ``A_v dx = e_v`` over the views v (see ``_lateral_model``), so
         ``Sigma = H^-1 (sum_v A_v^T C_v A_v) H^-1`` with ``H = sum_v A_v^T A_v``. For planes
-        this is exact and equals ``M blockdiag(C_f, C_s) M^T`` with M the
+        this is exact and equals ``M blockdiag(C_1, ..., C_n) M^T`` with M the
         :meth:`reconstruction_matrix`. For cameras it is first order in the noise; it equals
         ``(J^T W J)^-1`` (J the stacked pixel Jacobians, W the inverse noise covariance, i.e.
-        the bound of the optimal estimator) only when the noise is the same in both views in
+        the bound of the optimal estimator) only when the noise is the same in every view in
         the sense of the lateral error, and is never smaller.
         """
+        if len(covs) != len(self.views):
+            raise ValueError(f"expected covariances for {len(self.views)} views, got {len(covs)}")
         x = _checked(points_w, "points_w", (3,))
         H = np.zeros(x.shape[:-1] + (3, 3))
         N = np.zeros(())
-        views = ((self.front, cov_front, "cov_front"), (self.side, cov_side, "cov_side"))
-        for view, cov, name in views:
-            A, C = self._lateral_model(view, x, _covariance(cov, name))
+        for view, cov, name in zip(self.views, covs, self.names, strict=True):
+            A, C = self._lateral_model(view, x, _covariance(cov, f"cov_{name}"))
             A_T = np.swapaxes(A, -1, -2)
             H = H + A_T @ A
             N = N + A_T @ C @ A
         H_inv_N = np.linalg.solve(H, N)
         cov_w = np.linalg.solve(H, np.swapaxes(H_inv_N, -1, -2))
         return 0.5 * (cov_w + np.swapaxes(cov_w, -1, -2))
+
+    # The paper's two named views; kept while the data flow moves to named view sequences.
+    @property
+    def front(self) -> View:
+        return self.views[0]
+
+    @property
+    def side(self) -> View:
+        return self.views[1]
+
+
+BiplaneRig = Rig
 
 
 # -------------------------------------------------------------------------------- defaults
