@@ -20,6 +20,15 @@ MODEL_VERSION = 1
 BASES = {"power": PowerBasis}
 DEFAULT_MODEL_PATH = Path(__file__).with_name("default_catheter.toml")
 
+# Limits of a plausible model: a steerable segment is millimetres to decimetres long, a modal
+# basis has a handful of terms, and a quadrature order beyond a few dozen only costs time
+# (order 3,000 took 29 s to load). Values outside are typing errors, refused with one line.
+LENGTH_RANGE_MM = (0.1, 1000.0)
+MAX_BASIS_SIZE = 12
+QUADRATURE_ORDER_RANGE = (2, 200)
+MAX_MODAL_COEFFICIENT = 1e3
+MAX_MARKERS = 32
+
 
 class ModelFileError(ValueError):
     """A model file that cannot be read or does not describe a valid catheter."""
@@ -31,29 +40,60 @@ def _require(table: dict[str, Any], key: str, where: str) -> Any:
     return table[key]
 
 
+def _is_number(x: Any) -> bool:
+    """A TOML integer or float; a boolean is not a number."""
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
+def _number(x: Any, key: str, where: str, low: float, high: float, what: str = "a number") -> float:
+    if not _is_number(x) or not np.isfinite(x) or not low <= x <= high:
+        raise ModelFileError(f"{where}: {key} must be {what} in [{low:g}, {high:g}], got {x!r}")
+    return float(x)
+
+
+def _integer(x: Any, key: str, where: str, low: int, high: int) -> int:
+    if not isinstance(x, int) or isinstance(x, bool) or not low <= x <= high:
+        raise ModelFileError(f"{where}: {key} must be an integer in [{low}, {high}], got {x!r}")
+    return x
+
+
 def _basis(spec: Any, where: str):
     if not isinstance(spec, dict):
         raise ModelFileError(f"{where}: expected a table like {{ basis = \"power\", size = 3 }}")
     name = _require(spec, "basis", where)
-    if name not in BASES:
-        raise ModelFileError(f"{where}: unknown basis '{name}', known: {', '.join(BASES)}")
-    size = _require(spec, "size", where)
-    if not isinstance(size, int) or size < 1:
-        raise ModelFileError(f"{where}: size must be a positive integer, got {size!r}")
+    if not isinstance(name, str) or name not in BASES:
+        raise ModelFileError(f"{where}: unknown basis {name!r}, known: {', '.join(BASES)}")
+    size = _integer(_require(spec, "size", where), "size", where, 1, MAX_BASIS_SIZE)
     return BASES[name](size)
+
+
+def _matrix(rows: Any, shape: tuple[int, int], where: str) -> np.ndarray:
+    ok = isinstance(rows, list) and all(isinstance(r, list) for r in rows)
+    if ok:
+        ok = all(_is_number(x) for r in rows for x in r)
+    if not ok:
+        raise ModelFileError(f"{where}: A must be a table of numbers (a list of rows)")
+    if len(rows) != shape[0] or any(len(r) != shape[1] for r in rows):
+        got = f"{len(rows)} rows of lengths {sorted({len(r) for r in rows})}"
+        raise ModelFileError(f"{where}: A has the wrong shape: {got}, need {shape[0]}x{shape[1]}")
+    A = np.array(rows, dtype=float)
+    if not np.all(np.isfinite(A)) or np.max(np.abs(A), initial=0.0) > MAX_MODAL_COEFFICIENT:
+        raise ModelFileError(
+            f"{where}: A must hold finite numbers of magnitude at most {MAX_MODAL_COEFFICIENT:g}"
+        )
+    return A
 
 
 def _segment(table: Any, where: str) -> ModalSegment:
     if not isinstance(table, dict):
         raise ModelFileError(f"{where}: expected a table")
     length = _require(table, "length_mm", where)
-    if not isinstance(length, int | float) or not length > 0:
-        raise ModelFileError(f"{where}: length_mm must be a positive number, got {length!r}")
+    length = _number(length, "length_mm", where, *LENGTH_RANGE_MM, "a positive number")
     psi = _basis(_require(table, "psi", where), f"{where}.psi")
     eta = _basis(_require(table, "eta", where), f"{where}.eta")
+    A = _matrix(_require(table, "A", where), (psi.size, eta.size), where)
     try:
-        A = np.array(_require(table, "A", where), dtype=float)
-        return ModalSegment(length_mm=float(length), A=A, psi=psi, eta=eta)
+        return ModalSegment(length_mm=length, A=A, psi=psi, eta=eta)
     except (TypeError, ValueError) as exc:
         raise ModelFileError(f"{where}: {exc}") from None
 
@@ -82,14 +122,29 @@ def catheter_from_dict(data: dict[str, Any], source: str = "model") -> Catheter:
     proximal = _segment(_require(data, "proximal", source), f"{source} [proximal]")
     distal = _segment(_require(data, "distal", source), f"{source} [distal]")
     delta_2 = data.get("delta_2_rad", 0.0)
+    delta_2 = _number(delta_2, "delta_2_rad", source, -2 * np.pi, 2 * np.pi)
     markers = data.get("marker_arclengths_mm", [])
+    total_mm = proximal.length_mm + distal.length_mm
+    if (
+        not isinstance(markers, list)
+        or len(markers) > MAX_MARKERS
+        or not all(_is_number(x) and np.isfinite(x) for x in markers)
+    ):
+        raise ModelFileError(
+            f"{source}: marker_arclengths_mm must be a list of at most {MAX_MARKERS} numbers"
+            f" (arclengths inside the catheter, 0 to {total_mm:g} mm), got {markers!r}"
+        )
     order = data.get("quadrature_order")
-    kwargs = {} if order is None else {"quadrature_order": order}
+    kwargs = {}
+    if order is not None:
+        kwargs["quadrature_order"] = _integer(
+            order, "quadrature_order", source, *QUADRATURE_ORDER_RANGE
+        )
     try:
         return Catheter(
             proximal=proximal,
             distal=distal,
-            delta_2_rad=float(delta_2),
+            delta_2_rad=delta_2,
             marker_arclengths_mm=tuple(float(s) for s in markers),
             **kwargs,
         )
@@ -109,8 +164,12 @@ def load_catheter(path: str | Path) -> Catheter:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ModelFileError(f"cannot read model file {path}: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ModelFileError(
+            f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})"
+        ) from None
+    except OSError as exc:
+        raise ModelFileError(f"cannot read model file {path}: {exc.strerror or exc}") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
