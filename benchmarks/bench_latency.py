@@ -33,9 +33,10 @@ from replay.simulation.render import Renderer, default_render_rig
 from replay.simulation.simulator import default_scene
 from replay.simulation.sources import session_joints, simulated_session
 from tracker.estimators import make_estimator
-from tracker.io.udp import EstimateSender, JointReceiver, SegmentedMarkers, encode_joints
+from tracker.io.datagrams import SegmentedMarkers, encode_joints
+from tracker.io.udp import EstimateSender, JointReceiver
 from tracker.live.loop import LiveTracker
-from tracker.live.sources import ImagePair
+from tracker.live.sources import ImageSet
 from tracker.reconstruction import Reconstructor
 
 TARGET_P99_MS = 5.0
@@ -110,13 +111,13 @@ def main(argv=None) -> int:
     print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
     started = time.perf_counter()
     pairs = [
-        ImagePair(f.time_s, *renderer.render(f.q, f.delta_L_true_rad, rng).images)
+        ImageSet(f.time_s, tuple(renderer.render(f.q, f.delta_L_true_rad, rng).images))
         for f in session.frames
     ]
-    h, w = pairs[0].image_front.shape
+    h, w = pairs[0].images[0].shape
     print(f"rendered {len(pairs)} pairs of {w}x{h} images in {time.perf_counter() - started:.1f} s")
     try:
-        from tracker.vision.segmentation import PairSegmenter
+        from tracker.vision.pair import PairSegmenter
     except ImportError:
         PairSegmenter = None
     truth = session.delta_L_true_rad
@@ -127,19 +128,17 @@ def main(argv=None) -> int:
         run("segmentation", pairs, scene, truth, segmenter)
         markers = []
         for i, pair in enumerate(pairs):
-            seg = segmenter.segment((pair.image_front, pair.image_side))
-            markers.append(
-                SegmentedMarkers(
-                    pair.time_s, seg.uv_front, seg.uv_side, seg.cov_front, seg.cov_side, i
-                )
-            )
+            seg = segmenter.segment(pair.images)
+            markers.append(SegmentedMarkers(pair.time_s, tuple(seg.uv), tuple(seg.cov), i))
         source = "segmented beforehand"
     else:
         print("tracker.vision.segmentation is not available: markers only (true points + 0.5 px)")
         cov = np.tile(0.25 * np.eye(2), (3, 1, 1))
         markers = [
-            SegmentedMarkers(f.time_s, *renderer.render(f.q, f.delta_L_true_rad, rng).points_px,
-                             cov, cov, i)
+            SegmentedMarkers(
+                f.time_s, tuple(renderer.render(f.q, f.delta_L_true_rad, rng).points_px),
+                (cov, cov), i
+            )
             for i, f in enumerate(session.frames)
         ]
         source = "true projections"

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
+from threadpoolctl import threadpool_info
 
 from models.catheter import default_catheter  # noqa: E402
 
@@ -25,12 +26,8 @@ SINGLE_REPEATS = 20_000
 TARGET_SINGLE_US = 20.0
 
 
-def blas_threads() -> str | None:
-    """Threads used by numpy's BLAS, or None when threadpoolctl is not installed."""
-    try:
-        from threadpoolctl import threadpool_info
-    except ImportError:
-        return None
+def blas_threads() -> str:
+    """Threads used by numpy's BLAS."""
     pools = [p for p in threadpool_info() if p.get("user_api") == "blas"]
     if not pools:
         return "no BLAS pool found"
@@ -81,9 +78,7 @@ def bench_single(label: str, call) -> float:
 
 def main() -> None:
     print(f"Python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
-    threads = blas_threads()
-    if threads is not None:
-        print(f"BLAS threads: {threads}")
+    print(f"BLAS threads: {blas_threads()}")
     print()
     rng = np.random.default_rng(0)
     bench_batched_tip(rng)

@@ -10,8 +10,11 @@ Run from the repository root: ``python benchmarks/bench_replay.py [--quick]``.
   and the live loop's frame-by-frame reconstruction for comparison.
 - With images, through segmentation and the UKF: image decoding, segmentation of both
   views, reconstruction and the UKF.
+- The tables of ``cathtrack evaluate`` (replay_tables, median of 5 runs) on 5,000 and 50,000
+  frames whose tip deflection and noise labels differ in every frame (binned into a few
+  ranges): the time grows linearly with the frames.
 
-Linear algebra runs on one BLAS thread, as in ``cathtrack evaluate`` (replay.studies.
+Linear algebra runs on one BLAS thread, as in ``cathtrack evaluate`` (replay.parallel.
 single_blas_thread): the matrices are tiny and BLAS threads only add contention.
 """
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -26,12 +30,16 @@ from pathlib import Path
 import numpy as np
 from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
-from replay.evaluation import observations_batch, recording_scene  # noqa: E402
+from models.catheter import default_catheter
+from models.imaging import default_orthographic_rig
+from replay.evaluation import MethodResult, Replay, recording_scene, replay_tables  # noqa: E402
+from replay.parallel import single_blas_thread  # noqa: E402
 from replay.protocol import ProtocolSettings, simulate_protocol  # noqa: E402
-from replay.studies import single_blas_thread  # noqa: E402
+from replay.simulation.simulator import default_scene
 from tracker.estimators import make_estimator
-from tracker.io.recording import open_recording
+from tracker.io.recording import FrameLabels, ReadReport, RecordedFrame, open_recording
 from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Frame
 
 TARGET_FRAMES_PER_S = 5000.0
 UKF_BUDGET_US = 1e6 / TARGET_FRAMES_PER_S
@@ -59,7 +67,7 @@ def bench_markers(directory: Path, configurations: int) -> None:
             scene = recording_scene(recording)
         t1 = time.perf_counter()
         reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
-        observations = observations_batch(reconstructor, frames)
+        observations = reconstructor.observe_batch(frames)
         t2 = time.perf_counter()
         ukf = make_estimator("ukf", scene.catheter)
         for observation in observations:
@@ -98,7 +106,7 @@ def bench_markers(directory: Path, configurations: int) -> None:
 
 
 def bench_images(directory: Path, configurations: int) -> None:
-    from tracker.vision.segmentation import PairSegmenter
+    from tracker.vision.pair import PairSegmenter
 
     settings = ProtocolSettings(
         images=True,
@@ -132,7 +140,7 @@ def bench_images(directory: Path, configurations: int) -> None:
             t_last = t_end
     t1 = time.perf_counter()
     reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
-    observations = observations_batch(reconstructor, frames)
+    observations = reconstructor.observe_batch(frames)
     ukf = make_estimator("ukf", scene.catheter)
     for observation in observations:
         ukf.step(observation)
@@ -144,12 +152,58 @@ def bench_images(directory: Path, configurations: int) -> None:
     print(f"  replay from images               {_rate(n, t2 - t0)}")
 
 
+def _labelled_replay(n: int, rng: np.random.Generator) -> Replay:
+    """n frames with their own deflection and noise labels, and two methods' estimates."""
+    scene = default_scene(default_catheter(), default_orthographic_rig())
+    points = np.zeros((1 + len(scene.catheter.marker_arclengths_mm), 2))
+    covs = np.tile(np.eye(2), (points.shape[0], 1, 1))
+    truth = rng.uniform(-np.pi, np.pi, n)
+    deflection, noise = rng.uniform(0, 10, n), rng.uniform(0.1, 3, n)
+    frames = [
+        RecordedFrame(
+            Frame(0.05 * i, np.zeros(3), None, (points, points), (covs, covs), None, truth[i]),
+            FrameLabels(i % 11, i // 100, float(deflection[i]), float(noise[i])),
+        )
+        for i in range(n)
+    ]
+    results = {}
+    for name in ("tip-position", "ukf"):
+        delta = truth + 0.02 * rng.standard_normal(n)
+        estimates = tuple(Estimate(0.05 * i, delta[i], 0.02, 0.0, nis=1.0) for i in range(n))
+        results[name] = MethodResult(name, estimates, truth)
+    return Replay(
+        "labelled.mcap", "markers", scene, frames, [], results, np.full(n, 0.02), np.ones(n),
+        ReadReport("labelled.mcap"), {},
+    )  # fmt: skip
+
+
+def bench_tables() -> None:
+    rng = np.random.default_rng(0)
+    for n in (5_000, 50_000):
+        replay = _labelled_replay(n, rng)
+        seconds = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            tables = replay_tables(replay)
+            seconds.append(time.perf_counter() - t0)
+        groups = len({r["group"] for r in tables["deflection"]})
+        print(
+            f"tables of {n} frames with continuous labels ({groups} deflection groups):"
+            f" median {1e3 * statistics.median(seconds):.1f} ms"
+            f" ({1e6 * statistics.median(seconds) / n:.2f} us/frame)"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller recordings")
+    parser.add_argument("--tables", action="store_true", help="only the tables benchmark")
     args = parser.parse_args()
     print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
     with tempfile.TemporaryDirectory() as tmp, single_blas_thread():
+        bench_tables()
+        if args.tables:
+            return
         directory = Path(tmp)
         bench_markers(directory, 22 if args.quick else 94)
         bench_images(directory, 4 if args.quick else 11)

@@ -24,6 +24,7 @@ import time
 import numpy as np
 from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
+from replay.parallel import single_blas_thread  # noqa: E402
 from replay.studies import (  # noqa: E402
     SensitivitySettings,
     Task,
@@ -32,7 +33,6 @@ from replay.studies import (  # noqa: E402
     make_tasks,
     run_sensitivity,
     simulate_task,
-    single_blas_thread,
     study_points,
     ukf_errors,
 )

@@ -41,15 +41,10 @@ from replay.simulation.render import Renderer, default_render_rig
 from replay.simulation.simulator import default_scene
 from replay.simulation.sources import session_joints
 from tracker.estimators import make_estimator
-from tracker.io.udp import (
-    EstimateSender,
-    JointReceiver,
-    SegmentedMarkers,
-    decode_estimate,
-    encode_joints,
-)
+from tracker.io.datagrams import SegmentedMarkers, decode_estimate, encode_joints
+from tracker.io.udp import EstimateSender, JointReceiver
 from tracker.live.loop import LiveTracker
-from tracker.live.sources import ImagePair
+from tracker.live.sources import ImageSet
 from tracker.reconstruction import Reconstructor
 
 DELTA_L_TRUE_RAD = 2.0
@@ -135,15 +130,15 @@ def main(argv=None) -> int:
         pair = renderer.render(q, DELTA_L_TRUE_RAD, rng)
         if args.images == "rendered":
             images = pair.images
-            pool.append(lambda stamp, images=images: ImagePair(stamp, *images))
+            pool.append(lambda stamp, images=images: ImageSet(stamp, tuple(images)))
         else:
             cov = np.tile(0.25 * np.eye(2), (pair.points_px[0].shape[0], 1, 1))
             uv = [p + 0.5 * rng.standard_normal(p.shape) for p in pair.points_px]
             pool.append(
-                lambda stamp, uv=uv, cov=cov: SegmentedMarkers(stamp, uv[0], uv[1], cov, cov)
+                lambda stamp, uv=uv, cov=cov: SegmentedMarkers(stamp, tuple(uv), (cov, cov))
             )
     if args.images == "rendered":
-        from tracker.vision.segmentation import PairSegmenter
+        from tracker.vision.pair import PairSegmenter
 
         segmenter = PairSegmenter(
             catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds

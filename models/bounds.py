@@ -1,4 +1,4 @@
-"""Cramer-Rao lower bound on delta_L (DESIGN.md section 5).
+"""Cramer-Rao lower bound on delta_L (docs/design.md section 5).
 
 The measurements are ``Rz(q_r + delta_L) c + noise`` with Gaussian noise of known covariance,
 so the Fisher information of delta_L is ``m'^T Sigma^-1 m'`` with ``m' = e_z x Rz(delta_1) c``.
@@ -8,6 +8,8 @@ where it is reported as ``inf`` (never NaN).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -30,12 +32,20 @@ def block_diagonal(covariances: Array) -> Array:
 def information_from_covariance(covariance: Array) -> Array:
     """Inverse of a symmetric positive-definite covariance by Cholesky solves.
 
+    Parameters
+    ----------
+    covariance : array, shape (..., m, m)
+
     Raises ValueError naming the problem if the covariance is not finite or not positive
     definite, rather than returning NaN.
     """
     cov = np.asarray(covariance, dtype=float)
     if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ValueError(f"covariance must be square, got shape {cov.shape}")
+    if cov.shape == (3, 3):
+        return np.array(_information_3x3(cov.tolist()))
+    if cov.ndim == 3 and cov.shape[1:] == (3, 3) and 0 < cov.shape[0] <= _FEW_POINTS:
+        return np.array([_information_3x3(block) for block in cov.tolist()])
     if not np.all(np.isfinite(cov)):
         raise ValueError("covariance contains non-finite values")
     sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
@@ -43,13 +53,62 @@ def information_from_covariance(covariance: Array) -> Array:
         chol = np.linalg.cholesky(sym)
     except np.linalg.LinAlgError as exc:
         raise ValueError("covariance is not positive definite") from exc
-    eye = np.broadcast_to(np.eye(cov.shape[-1]), cov.shape)
-    inv_chol = np.linalg.solve(chol, eye)
+    if cov.ndim == 2:
+        # One matrix: inv is the same LAPACK solve against the identity, without the
+        # broadcasting machinery that costs more than the arithmetic at this size.
+        inv_chol = np.linalg.inv(chol)
+    else:
+        inv_chol = np.linalg.solve(chol, np.broadcast_to(np.eye(cov.shape[-1]), cov.shape))
     return np.swapaxes(inv_chol, -1, -2) @ inv_chol
 
 
-def _std_from_information(info: Array) -> Array:
-    info = np.asarray(info, dtype=float)
+# Up to this many 3 x 3 covariances (one frame's points) are inverted in Python floats: the
+# per-frame estimators invert a few per frame, where numpy's linear-algebra calls cost ten
+# times the arithmetic.
+_FEW_POINTS = 4
+
+
+def _information_3x3(cov: list[list[float]]) -> list[list[float]]:
+    """The inverse of one 3 x 3 covariance, in floats, by the steps of the numpy path:
+    symmetrise, Cholesky factor L, then L^-T L^-1."""
+    (a, b, c), (d, e, f), (g, h, i) = cov
+    if not all(map(math.isfinite, (a, b, c, d, e, f, g, h, i))):
+        raise ValueError("covariance contains non-finite values")
+    s10, s20, s21 = 0.5 * (d + b), 0.5 * (g + c), 0.5 * (h + f)
+    l00 = _cholesky_pivot(a)
+    l10, l20 = s10 / l00, s20 / l00
+    l11 = _cholesky_pivot(e - l10 * l10)
+    l21 = (s21 - l20 * l10) / l11
+    l22 = _cholesky_pivot(i - l20 * l20 - l21 * l21)
+    # M = L^-1 (lower triangular), information = M^T M.
+    m00, m11, m22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    m10 = -l10 * m00 / l11
+    m21 = -l21 * m11 / l22
+    m20 = -(l20 * m00 + l21 * m10) / l22
+    w01 = m10 * m11 + m20 * m21
+    w02 = m20 * m22
+    w12 = m21 * m22
+    return [
+        [m00 * m00 + m10 * m10 + m20 * m20, w01, w02],
+        [w01, m11 * m11 + m21 * m21, w12],
+        [w02, w12, m22 * m22],
+    ]
+
+
+def _cholesky_pivot(value: float) -> float:
+    if not value > 0.0:
+        raise ValueError("covariance is not positive definite")
+    return math.sqrt(value)
+
+
+def std_from_information(information: Array | float) -> Array | float:
+    """Standard deviation 1 / sqrt(I) from a Fisher information I, inf where I <= 0 (never NaN).
+
+    A float for a float (one frame), else an array of the same shape.
+    """
+    if isinstance(information, float):
+        return 1.0 / math.sqrt(information) if information > 0 else math.inf
+    info = np.asarray(information, dtype=float)
     with np.errstate(divide="ignore"):
         return np.where(info > 0, 1.0 / np.sqrt(np.maximum(info, 1e-300)), np.inf)
 
@@ -85,7 +144,7 @@ def crb_tip(catheter: Catheter, q: Array, delta_L: Array | float, cov_b: Array) 
         information_from_covariance(cov_b),
         shape.q_r_rad + delta_L,
     )
-    return _std_from_information(info)
+    return std_from_information(info)
 
 
 def crb_markers(catheter: Catheter, q: Array, delta_L: Array | float, cov_b: Array) -> Array:
@@ -99,7 +158,7 @@ def crb_markers(catheter: Catheter, q: Array, delta_L: Array | float, cov_b: Arr
     c = np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
     W = information_from_covariance(_joint_covariance(cov_b, c.shape[-2]))
     info = rotation_fisher_information(c, W, shape.q_r_rad + delta_L)
-    return _std_from_information(info)
+    return std_from_information(info)
 
 
 def crb_velocity(
@@ -112,4 +171,4 @@ def crb_velocity(
         information_from_covariance(cov_b),
         shape.q_r_rad + delta_L,
     )
-    return _std_from_information(info)
+    return std_from_information(info)

@@ -1,4 +1,4 @@
-"""Two-segment steerable catheter: direct and instantaneous kinematics (DESIGN.md section 3).
+"""Two-segment steerable catheter: direct and instantaneous kinematics (docs/design.md section 3).
 
 ``delta_L`` enters the model only through a rotation about ``z_b``::
 
@@ -280,6 +280,11 @@ class Catheter:
             self._plans[arclengths] = plan
         return plan
 
+    @cached_property
+    def _marker_plan(self) -> _Plan:
+        """The plan of the markers and the tip (the tip last), looked up once per catheter."""
+        return self._plan(self.marker_arclengths_mm + (self.length_mm,))
+
     def _check_arclengths(self, arclength_mm: Array) -> Array:
         s = _check_finite(arclength_mm, "arclength_mm")
         if np.any(s < 0.0) or np.any(s > self.length_mm):
@@ -445,7 +450,7 @@ class Catheter:
         q = np.asarray(q, dtype=float)
         if q_dot is not None:
             q_dot = np.asarray(q_dot, dtype=float)
-        plan = self._plan(self.marker_arclengths_mm + (self.length_mm,))
+        plan = self._marker_plan
         if q.shape == (3,) and (q_dot is None or q_dot.shape == (3,)):
             joints = _joint_floats(q, "q")
             rates = None if q_dot is None else _joint_floats(q_dot, "q_dot")
@@ -576,7 +581,7 @@ class Catheter:
 
 
 def default_catheter(delta_2_rad: float = 0.0, **overrides) -> Catheter:
-    """The default model of DESIGN.md section 3 (L1 = 13 mm, L2 = 16 mm, quadratic bases)."""
+    """The default model of docs/design.md section 3 (L1 = 13 mm, L2 = 16 mm, quadratic bases)."""
     proximal = ModalSegment(
         length_mm=13.0,
         A=np.array([[np.pi / 2, 0.0, 0.0], [0.0, -2.2, 0.15], [0.0, 0.3, 0.0]]),

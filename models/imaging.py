@@ -7,7 +7,8 @@ Two view models share one interface (``project``, ``projection_jacobian``):
 - :class:`PinholeView`, a calibrated camera in OpenCV's conventions (camera x right, y down,
   z along the optical axis; distortion k1, k2, p1, p2, k3), images in px.
 
-:class:`BiplaneRig` pairs a front and a side view of the same kind, reconstructs points (and,
+:class:`Rig` holds two or more named views of the same kind (the paper's bi-plane rig: front
+and side), reconstructs points (and,
 orthographic only, difference vectors such as tip minus base) and propagates 2-D segmentation
 noise to the 3-D covariance of the reconstruction. World units are mm; arrays are batch-first.
 """
@@ -535,34 +536,23 @@ class Rig:
         cov_w = np.linalg.solve(H, np.swapaxes(H_inv_N, -1, -2))
         return 0.5 * (cov_w + np.swapaxes(cov_w, -1, -2))
 
-    # The paper's two named views; kept while the data flow moves to named view sequences.
-    @property
-    def front(self) -> View:
-        return self.views[0]
-
-    @property
-    def side(self) -> View:
-        return self.views[1]
-
-
-BiplaneRig = Rig
 
 
 # -------------------------------------------------------------------------------- defaults
-def default_orthographic_rig() -> BiplaneRig:
+def default_orthographic_rig() -> Rig:
     """Front (AP) plane with normal -y and side (lateral) plane with normal +x; v = world z.
 
     The normals point toward the viewers of :func:`default_pinhole_rig`, so both default rigs
     show the same images up to scale and the flip of v (image rows grow downward).
     Front: u = world x; side: u = world y.
     """
-    return BiplaneRig(
+    return Rig(
         OrthographicPlane.from_normal([0.0, -1.0, 0.0]),
         OrthographicPlane.from_normal([1.0, 0.0, 0.0]),
     )
 
 
-def default_pinhole_rig(distance_mm: float = 400.0, focal_px: float = 1000.0) -> BiplaneRig:
+def default_pinhole_rig(distance_mm: float = 400.0, focal_px: float = 1000.0) -> Rig:
     """Two undistorted 640x480 cameras aimed at the origin from -y (front) and +x (side).
 
     Parameters
@@ -576,7 +566,7 @@ def default_pinhole_rig(distance_mm: float = 400.0, focal_px: float = 1000.0) ->
     if d <= 0.0:
         raise ValueError(f"distance_mm must be positive, got {distance_mm}")
     origin, up = np.zeros(3), np.array([0.0, 0.0, 1.0])
-    return BiplaneRig(
+    return Rig(
         PinholeView.look_at([0.0, -d, 0.0], origin, up, focal_px),
         PinholeView.look_at([d, 0.0, 0.0], origin, up, focal_px),
     )

@@ -1,32 +1,41 @@
-"""Reading a calibrated bi-plane rig from TOML (DESIGN.md sections 4 and 7).
+"""Bi-plane rig files (TOML): reading and writing (docs/design.md sections 4 and 7).
 
-The format is documented in docs/vision.md; ``tracker.vision.rig_calibration`` writes it. A rig file
-holds, per view (``[front]`` and ``[side]``), a calibrated pinhole camera in OpenCV's
-conventions (image size, intrinsics, distortion, pose of {W} in the camera) and the normal
-``normal_w`` of the imaging plane that the paper's orthographic model needs (the direction
-from the scene toward the camera). :func:`load_rig` builds a
-:class:`models.imaging.BiplaneRig` of either kind from it.
+The format is documented in docs/vision.md. A rig file holds, per view (``[front]`` and
+``[side]``), a calibrated pinhole camera in OpenCV's conventions (image size, intrinsics,
+distortion, pose of {W} in the camera) and the normal ``normal_w`` of the imaging plane that
+the paper's orthographic model needs (the direction from the scene toward the camera), or the
+plane alone; optionally the registered pose of the catheter base in ``[base]``.
+:func:`load_rig` builds a :class:`models.imaging.Rig` of either kind from it,
+:func:`base_from_dict` the base :class:`models.pose.Pose`, and :func:`rig_toml` writes the
+text (the callers write the file: calibration, recordings).
 
-Like models/model_file.py this module only reads; it also holds the small geometric helpers
-that relate a far pinhole view to its orthographic plane.
+It also holds the small geometric helpers that relate a far pinhole view to its orthographic
+plane.
 """
 
 from __future__ import annotations
 
+import json
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from models.imaging import BiplaneRig, OrthographicPlane, PinholeView
+from models.imaging import DEFAULT_VIEW_NAMES, OrthographicPlane, PinholeView, Rig
 from models.model_file import check_header
+from models.pose import Pose
 
 Array = np.ndarray
 
 RIG_FORMAT = "cathtrack-rig"
 RIG_VERSION = 1
-VIEW_NAMES = ("front", "side")
+VIEW_NAMES = DEFAULT_VIEW_NAMES  # a file without a ``views`` list: the bi-plane rig
+MAX_VIEWS = 8
+RESERVED_TABLES = frozenset({"base", "calibration", "format", "version", "views"})
+ROTATION_TOLERANCE = 1e-3
+MAX_DISTANCE_MM = 1e5
 MODELS = ("pinhole", "orthographic")
 NORMAL_TOLERANCE_RAD = 1e-3
 """How far ``normal_w`` may be from the camera's viewing direction when both are given."""
@@ -98,11 +107,11 @@ def orthographic_plane(view: PinholeView) -> OrthographicPlane:
     return OrthographicPlane(np.column_stack([R[0], -R[1], -R[2]]))
 
 
-def orthographic_rig(rig: BiplaneRig) -> BiplaneRig:
+def orthographic_rig(rig: Rig) -> Rig:
     """The orthographic (far-source) approximation of a pinhole rig."""
     if rig.kind != "pinhole":
         return rig
-    return BiplaneRig(orthographic_plane(rig.front), orthographic_plane(rig.side))
+    return Rig(*(orthographic_plane(view) for view in rig.views), names=rig.names)
 
 
 def plane_from_pixels(view: PinholeView, uv: Array, cov: Array | None = None):
@@ -143,7 +152,7 @@ def plane_from_pixels(view: PinholeView, uv: Array, cov: Array | None = None):
     return out, S @ np.asarray(cov, dtype=float) @ S
 
 
-def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinhole") -> BiplaneRig:
+def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinhole") -> Rig:
     """Build and validate a rig from parsed TOML tables.
 
     Parameters
@@ -155,8 +164,9 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinho
     if model not in MODELS:
         raise ValueError(f"unknown rig model {model!r}; use one of {', '.join(MODELS)}")
     check_header(data, RIG_FORMAT, RIG_VERSION, source, RigFileError, "rig")
+    names = view_names(data, source)
     views = []
-    for name in VIEW_NAMES:
+    for name in names:
         where = f"{source} [{name}]"
         table = data.get(name)
         if table is None:
@@ -179,9 +189,26 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinho
             except ValueError as exc:
                 raise RigFileError(f"{where}: {exc}") from None
     try:
-        return BiplaneRig(views[0], views[1])
+        return Rig(*views, names=names)
     except ValueError as exc:
         raise RigFileError(f"{source}: {exc}") from None
+
+
+def view_names(data: dict[str, Any], source: str = "rig") -> tuple[str, ...]:
+    """The rig's view names: the ``views`` list, or ``front`` and ``side`` without one."""
+    names = data.get("views", list(VIEW_NAMES))
+    if (
+        not isinstance(names, list)
+        or not 2 <= len(names) <= MAX_VIEWS
+        or not all(isinstance(n, str) and n.isidentifier() for n in names)
+        or len(set(names)) != len(names)
+        or set(names) & RESERVED_TABLES
+    ):
+        raise RigFileError(
+            f"{source}: 'views' must list 2 to {MAX_VIEWS} distinct view names (identifiers,"
+            f" not {', '.join(sorted(RESERVED_TABLES))}), got {names!r}"
+        )
+    return tuple(names)
 
 
 def read_rig_file(path: str | Path) -> dict[str, Any]:
@@ -197,7 +224,7 @@ def read_rig_file(path: str | Path) -> dict[str, Any]:
         raise RigFileError(f"{path}: malformed TOML: {exc}") from None
 
 
-def load_rig(path: str | Path, model: str = "pinhole") -> BiplaneRig:
+def load_rig(path: str | Path, model: str = "pinhole") -> Rig:
     """Read a calibrated rig from a TOML file (see docs/vision.md).
 
     Raises
@@ -207,3 +234,130 @@ def load_rig(path: str | Path, model: str = "pinhole") -> BiplaneRig:
         missing or invalid key, inconsistent normals, coincident cameras.
     """
     return rig_from_dict(read_rig_file(path), str(path), model)
+
+
+def written_model(data: dict[str, Any]) -> str:
+    """The model a rig was written as: ``"pinhole"`` where its views have cameras (``K``),
+    ``"orthographic"`` for planes only."""
+    first = data.get(view_names(data)[0])
+    return "pinhole" if isinstance(first, dict) and "K" in first else "orthographic"
+
+
+def base_from_dict(data: dict[str, Any], source: str = "rig") -> Pose | None:
+    """The registered base pose of the ``[base]`` table (``R_w_b``, ``o_b_w_mm``), if any.
+
+    Raises
+    ------
+    RigFileError
+        A ``[base]`` table without a 3x3 rotation ``R_w_b`` and a 3-vector ``o_b_w_mm``.
+    """
+    base = data.get("base")
+    if base is None:
+        return None
+    where = f"{source} [base]"
+    if not isinstance(base, dict):
+        raise RigFileError(f"{where}: expected a table")
+    R_w_b = _array(base, "R_w_b", (3, 3), where)
+    o_b_w_mm = _array(base, "o_b_w_mm", (3,), where)
+    if np.max(np.abs(o_b_w_mm)) > MAX_DISTANCE_MM:
+        raise RigFileError(f"{where}: o_b_w_mm is more than {MAX_DISTANCE_MM:g} mm from {{W}}")
+    # A rotation typed by hand (or rounded when written) is orthonormal to a few digits only:
+    # within ROTATION_TOLERANCE it is replaced by the nearest rotation; beyond, it is refused.
+    U, _, Vt = np.linalg.svd(R_w_b)
+    nearest = U @ Vt
+    if np.linalg.det(nearest) < 0 or np.max(np.abs(nearest - R_w_b)) > ROTATION_TOLERANCE:
+        raise RigFileError(
+            f"{where}: R_w_b is not a rotation matrix (orthonormal with det +1 to within"
+            f" {ROTATION_TOLERANCE:g})"
+        )
+    try:
+        return Pose(nearest, o_b_w_mm)
+    except ValueError as exc:
+        raise RigFileError(f"{where}: {exc}") from None
+
+
+def rig_from_toml(
+    text: str, source: str = "rig", model: str | None = None
+) -> tuple[Rig, Pose | None]:
+    """The rig and the registered base pose (None without ``[base]``) of rig file text.
+
+    ``model`` None reads the views as written (:func:`written_model`).
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RigFileError(f"{source}: malformed TOML: {exc}") from None
+    rig = rig_from_dict(data, source, model or written_model(data))
+    return rig, base_from_dict(data, source)
+
+
+# ------------------------------------------------------------------------------- writing
+def toml_value(x) -> str:
+    """A TOML value: strings, booleans, integers, floats (``repr``: read back exactly), arrays."""
+    if isinstance(x, str):
+        return json.dumps(x)
+    if isinstance(x, bool | np.bool_):
+        return "true" if x else "false"
+    if isinstance(x, int | np.integer):
+        return str(int(x))
+    if isinstance(x, float | np.floating):
+        return repr(float(x))
+    return "[" + ", ".join(toml_value(v) for v in np.asarray(x).tolist()) + "]"
+
+
+def _view_table(view) -> dict[str, Any]:
+    if isinstance(view, OrthographicPlane):
+        n = view.normal_w
+        reference = OrthographicPlane.from_normal(n).R_w_view
+        u = np.asarray(view.R_w_view)[:, 0]
+        angle = float(np.arctan2(u @ reference[:, 1], u @ reference[:, 0]))
+        return {"normal_w": n, "in_plane_rotation_rad": angle}
+    return {
+        "image_size": [int(n) for n in view.image_size],
+        "K": view.K,
+        "dist": view.dist,
+        "R_cam_w": view.R_cam_w,
+        "t_cam_w": view.t_cam_w,
+        "normal_w": -np.asarray(view.R_cam_w)[2],
+    }
+
+
+def rig_toml(
+    rig: Rig,
+    base: Pose | None = None,
+    comment: str = "",
+    extra: Mapping[str, Mapping[str, Any]] | None = None,
+) -> str:
+    """The text of a rig file (docs/vision.md) that :func:`rig_from_toml` reads back.
+
+    Pinhole views are written as calibrated cameras (with the ``normal_w`` of their plane),
+    orthographic planes by their normal and in-plane rotation. Floats are written with
+    ``repr``, so reading the text back gives the same numbers (planes up to rounding of the
+    in-plane rotation).
+
+    Parameters
+    ----------
+    rig : Rig
+    base : Pose, optional
+        The registered pose of the catheter base, written as ``[base]``.
+    comment : str
+        Lines written as TOML comments at the top.
+    extra : mapping of table name to mapping, optional
+        More keys: those of a view's name end that view's table; other tables (e.g. the
+        ``[calibration]`` residuals) are written before the views.
+    """
+    extra = dict(extra or {})
+    lines = [f"# {line}" for line in comment.splitlines()]
+    lines += ["# Units: mm, rad, px.", f'format = "{RIG_FORMAT}"', f"version = {RIG_VERSION}"]
+    lines.append(f"views = {toml_value(list(rig.names))}")
+    tables: dict[str, Mapping[str, Any]] = {
+        name: table for name, table in extra.items() if name not in rig.names
+    }
+    if base is not None:
+        tables["base"] = {"R_w_b": base.R_w_b, "o_b_w_mm": base.o_b_w_mm}
+    for name, view in zip(rig.names, rig.views, strict=True):
+        tables[name] = {**_view_table(view), **extra.get(name, {})}
+    for name, table in tables.items():
+        lines += ["", f"[{name}]"]
+        lines += [f"{key} = {toml_value(value)}" for key, value in table.items()]
+    return "\n".join(lines) + "\n"

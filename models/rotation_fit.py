@@ -1,4 +1,4 @@
-"""Exact global fit of a rotation about z_b (the structure of DESIGN.md section 3).
+"""Exact global fit of a rotation about z_b (the structure of docs/design.md section 3).
 
 Every estimator of the bending plane reduces to: find the angle phi minimising
 
@@ -11,15 +11,28 @@ trigonometric polynomial of degree two in ``phi``; its stationary points are the
 roots of a quartic, so the global minimum is found exactly. With weights that are isotropic in
 the horizontal plane (the common case) the quadratic terms vanish and the minimiser is the 2-D
 Procrustes (Wahba) solution ``atan2(sum w cross_z, sum w dot_xy)``.
+
+``W`` is the joint (3n, 3n) information matrix, or, for independent vectors, their own 3 x 3
+informations stacked as (n, 3, 3) (see :func:`is_per_vector`).
 """
 
 from __future__ import annotations
 
+import cmath
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import zgeev
 
 Array = np.ndarray
+
+
+# Newton steps on the best candidate after the candidates' own: a candidate that started in
+# another basin (a near-double root) can be a few 1e-8 rad short of the minimum after three
+# steps and still win the comparison of costs, which rounding decides between it and a fully
+# converged one. Two more steps on the winner converge it to rounding in every case.
+POLISH_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -42,6 +55,20 @@ def _basis_vectors(c: Array) -> tuple[Array, Array, Array]:
     return m0.reshape(flat), m_c.reshape(flat), m_s.reshape(flat)
 
 
+def is_per_vector(W: Array, n: int) -> bool:
+    """True if ``W`` holds one 3 x 3 information per vector, shape (..., n, 3, 3), rather than
+    the joint (..., 3n, 3n) matrix (the two coincide for one vector, read as joint)."""
+    return n > 1 and W.shape[-1] == 3
+
+
+def _times(W: Array, v: Array) -> Array:
+    """W v for stacked vectors v (..., 3n), W joint (..., 3n, 3n) or per vector (..., n, 3, 3)."""
+    if not is_per_vector(W, v.shape[-1] // 3):
+        return np.einsum("...ij,...j->...i", W, v)
+    per_vector = v.reshape(v.shape[:-1] + (-1, 3))
+    return np.einsum("...kij,...kj->...ki", W, per_vector).reshape(v.shape)
+
+
 def trig_coefficients(y: Array, c: Array, W: Array) -> tuple[Array, ...]:
     """Coefficients of f(phi) = k + a1 cos + b1 sin + a2 cos 2phi + b2 sin 2phi.
 
@@ -49,13 +76,13 @@ def trig_coefficients(y: Array, c: Array, W: Array) -> tuple[Array, ...]:
     ----------
     y, c : array, shape (..., n, 3)
         Measured vectors and model vectors.
-    W : array, shape (..., 3n, 3n)
-        Information matrix (inverse covariance) of the stacked measurement.
+    W : array, shape (..., 3n, 3n) or (..., n, 3, 3)
+        Information matrix (inverse covariance) of the stacked measurement, or of each vector.
     """
     m0, m_c, m_s = _basis_vectors(c)
     r0 = y.reshape(m0.shape) - m0
-    Wm_c = np.einsum("...ij,...j->...i", W, m_c)
-    Wm_s = np.einsum("...ij,...j->...i", W, m_s)
+    Wm_c = _times(W, m_c)
+    Wm_s = _times(W, m_s)
     cc = np.sum(m_c * Wm_c, -1)
     ss = np.sum(m_s * Wm_s, -1)
     cs = np.sum(m_s * Wm_c, -1)
@@ -63,7 +90,7 @@ def trig_coefficients(y: Array, c: Array, W: Array) -> tuple[Array, ...]:
     b1 = -2.0 * np.sum(r0 * Wm_s, -1)
     a2 = 0.5 * (cc - ss)
     b2 = cs
-    k = np.sum(r0 * np.einsum("...ij,...j->...i", W, r0), -1) + 0.5 * (cc + ss)
+    k = np.sum(r0 * _times(W, r0), -1) + 0.5 * (cc + ss)
     return k, a1, b1, a2, b2, cc, ss, cs
 
 
@@ -97,6 +124,18 @@ def _stationary_candidates(a1, b1, a2, b2) -> Array:
     return np.where(np.isfinite(candidates), candidates, procrustes[..., None])
 
 
+def _newton(phi: Array, a1, b1, a2, b2, steps: int = POLISH_STEPS) -> Array:
+    """Newton steps on f'(phi) = 0 from every angle in ``phi``, towards minima only."""
+    for _ in range(steps):
+        d1 = -a1 * np.sin(phi) + b1 * np.cos(phi)
+        d1 += -2 * a2 * np.sin(2 * phi) + 2 * b2 * np.cos(2 * phi)
+        d2 = -a1 * np.cos(phi) - b1 * np.sin(phi)
+        d2 += -4 * a2 * np.cos(2 * phi) - 4 * b2 * np.sin(2 * phi)
+        # Only step towards minima (d2 > 0); maxima stay where they are and lose below.
+        phi = np.where(d2 > 0, phi - d1 / np.where(d2 > 0, d2, 1.0), phi)
+    return phi
+
+
 def fit_rotation_z(y: Array, c: Array, W: Array, newton_steps: int = 3) -> RotationFit:
     """Global weighted least-squares angle of a rotation about z.
 
@@ -106,31 +145,27 @@ def fit_rotation_z(y: Array, c: Array, W: Array, newton_steps: int = 3) -> Rotat
         Measured vectors (positions relative to the base or velocities) in {B}.
     c : array, shape (..., n, 3)
         delta_L-independent model vectors: the model predicts ``Rz(phi) c``.
-    W : array, shape (..., 3n, 3n)
-        Information matrix of the stacked measurement (inverse of its noise covariance).
+    W : array, shape (..., 3n, 3n) or (..., n, 3, 3)
+        Information matrix of the stacked measurement (inverse of its noise covariance), or of
+        each vector when they are independent.
 
     Returns
     -------
     RotationFit
-        ``phi_rad`` is the bending-plane angle delta_1; subtract q_r for delta_L.
+        ``phi_rad`` is the bending-plane angle delta_1; subtract q_r for delta_L. Python
+        floats for one problem (no batch axes).
     """
     y = np.asarray(y, dtype=float)
     c = np.asarray(c, dtype=float)
     W = np.asarray(W, dtype=float)
+    if c.ndim == 2 and y.shape == c.shape and W.shape in ((c.size, c.size), c.shape + (3,)):
+        return _fit_one(y, c, W, newton_steps)
     k, a1, b1, a2, b2, cc, ss, cs = trig_coefficients(y, c, W)
-    phi = _stationary_candidates(a1, b1, a2, b2)
     args = [x[..., None] for x in (a1, b1, a2, b2)]
-    for _ in range(newton_steps):
-        d1 = -args[0] * np.sin(phi) + args[1] * np.cos(phi)
-        d1 += -2 * args[2] * np.sin(2 * phi) + 2 * args[3] * np.cos(2 * phi)
-        d2 = -args[0] * np.cos(phi) - args[1] * np.sin(phi)
-        d2 += -4 * args[2] * np.cos(2 * phi) - 4 * args[3] * np.sin(2 * phi)
-        # Only step towards minima (d2 > 0); maxima stay where they are and lose below.
-        phi = np.where(d2 > 0, phi - d1 / np.where(d2 > 0, d2, 1.0), phi)
-    costs = _evaluate(phi, k[..., None], *args)
-    best = np.argmin(costs, axis=-1)
-    phi_best = np.take_along_axis(phi, best[..., None], -1)[..., 0]
-    cost = np.take_along_axis(costs, best[..., None], -1)[..., 0]
+    phi = _newton(_stationary_candidates(a1, b1, a2, b2), *args, newton_steps)
+    best = np.argmin(_evaluate(phi, k[..., None], *args), axis=-1)
+    phi_best = _newton(np.take_along_axis(phi, best[..., None], -1)[..., 0], a1, b1, a2, b2)
+    cost = _evaluate(phi_best, k, a1, b1, a2, b2)
     # Fisher information m'(phi)^T W m'(phi), m' = -sin m_c + cos m_s.
     s, co = np.sin(phi_best), np.cos(phi_best)
     info = s * s * cc + co * co * ss - 2 * s * co * cs
@@ -144,16 +179,141 @@ def fit_rotation_z(y: Array, c: Array, W: Array, newton_steps: int = 3) -> Rotat
     )
 
 
+def _fit_one(y: Array, c: Array, W: Array, newton_steps: int) -> RotationFit:
+    """:func:`fit_rotation_z` for one problem, in Python floats: the same coefficients,
+    candidates and Newton iterations as the batched path, which on one frame spends ten times
+    the arithmetic in numpy's per-call overhead (the per-frame estimators call it every frame).
+    """
+    points, measured = c.tolist(), y.tolist()
+    if len(points) == 1 or is_per_vector(W, len(points)):
+        # Independent vectors: the coefficients are sums of one quadratic form per vector.
+        blocks = W.tolist() if W.ndim == 3 else [W.tolist()]
+        cc = cs = ss = r0_c = r0_s = r0_r0 = 0.0
+        for point, measured_point, block in zip(points, measured, blocks, strict=True):
+            g = _gram_one_vector(point, measured_point, block)
+            cc, cs, ss = cc + g[0], cs + g[1], ss + g[2]
+            r0_c, r0_s, r0_r0 = r0_c + g[3], r0_s + g[4], r0_r0 + g[5]
+    else:
+        # Rows m_c, m_s and r0 = y - m0 (see _basis_vectors); their Gram matrix under W holds
+        # every coefficient: M W M^T = [[cc, cs, .], [., ss, .], [r0 W m_c, r0 W m_s, r0 W r0]].
+        M = np.array(
+            [
+                [v for x, y_, _ in points for v in (x, y_, 0.0)],
+                [v for x, y_, _ in points for v in (-y_, x, 0.0)],
+                [
+                    v
+                    for (_, _, z), (u, w, t) in zip(points, measured, strict=True)
+                    for v in (u, w, t - z)
+                ],
+            ]
+        )
+        (cc, _, _), (cs, ss, _), (r0_c, r0_s, r0_r0) = (M @ W @ M.T).tolist()
+    a1, b1 = -2.0 * r0_c, -2.0 * r0_s
+    a2, b2 = 0.5 * (cc - ss), cs
+    k = r0_r0 + 0.5 * (cc + ss)
+    best_phi, best_cost = math.nan, math.inf
+    for phi in _stationary_candidates_one(a1, b1, a2, b2):
+        phi = _newton_one(phi, a1, b1, a2, b2, newton_steps)
+        cost = _evaluate_one(phi, k, a1, b1, a2, b2)
+        if cost < best_cost or math.isnan(best_phi):
+            best_phi, best_cost = phi, cost
+    best_phi = _newton_one(best_phi, a1, b1, a2, b2, POLISH_STEPS)
+    best_cost = _evaluate_one(best_phi, k, a1, b1, a2, b2)
+    s1, c1 = math.sin(best_phi), math.cos(best_phi)
+    return RotationFit(
+        phi_rad=(best_phi + math.pi) % (2 * math.pi) - math.pi,
+        fisher_information=s1 * s1 * cc + c1 * c1 * ss - 2 * s1 * c1 * cs,
+        cost=max(best_cost, 0.0),
+        informative_radius_mm=math.sqrt(sum(x * x + y_ * y_ for x, y_, _ in points)),
+    )
+
+
+def _gram_one_vector(
+    c: list[float], y: list[float], W: list[list[float]]
+) -> tuple[float, float, float, float, float, float]:
+    """cc, cs, ss, r0 W m_c, r0 W m_s, r0 W r0 of one vector with its own 3 x 3 information W.
+
+    The Gram matrix of :func:`_fit_one` written out for independent vectors: its numpy calls
+    cost four times this arithmetic on one frame.
+    """
+    (cx, cy, cz), (u, v, t) = c, y
+    (w00, w01, w02), (w10, w11, w12), (w20, w21, w22) = W
+    rz = t - cz
+    # W m_c and W m_s, with m_c = (cx, cy, 0) and m_s = (-cy, cx, 0).
+    a0, a1, a2 = w00 * cx + w01 * cy, w10 * cx + w11 * cy, w20 * cx + w21 * cy
+    b0, b1, b2 = w01 * cx - w00 * cy, w11 * cx - w10 * cy, w21 * cx - w20 * cy
+    return (
+        cx * a0 + cy * a1,
+        cx * a1 - cy * a0,
+        cx * b1 - cy * b0,
+        u * a0 + v * a1 + rz * a2,
+        u * b0 + v * b1 + rz * b2,
+        u * (w00 * u + w01 * v + w02 * rz)
+        + v * (w10 * u + w11 * v + w12 * rz)
+        + rz * (w20 * u + w21 * v + w22 * rz),
+    )
+
+
+def _newton_one(phi: float, a1: float, b1: float, a2: float, b2: float, steps: int) -> float:
+    """:func:`_newton` for one angle, in floats.
+
+    It stops at a fixed point (no step, or a step that leaves phi as it is), from where every
+    further step would repeat it: the result is that of all ``steps``.
+    """
+    for _ in range(steps):
+        s1, c1, s2, c2 = math.sin(phi), math.cos(phi), math.sin(2 * phi), math.cos(2 * phi)
+        d1 = -a1 * s1 + b1 * c1
+        d1 += -2 * a2 * s2 + 2 * b2 * c2
+        d2 = -a1 * c1 - b1 * s1
+        d2 += -4 * a2 * c2 - 4 * b2 * s2
+        if not d2 > 0:
+            break
+        stepped = phi - d1 / d2
+        if stepped == phi:
+            break
+        phi = stepped
+    return phi
+
+
+def _evaluate_one(phi: float, k: float, a1: float, b1: float, a2: float, b2: float) -> float:
+    """:func:`_evaluate` for one angle, in floats."""
+    return (
+        k
+        + a1 * math.cos(phi)
+        + b1 * math.sin(phi)
+        + a2 * math.cos(2 * phi)
+        + b2 * math.sin(2 * phi)
+    )
+
+
+def _stationary_candidates_one(a1: float, b1: float, a2: float, b2: float) -> list[float]:
+    """:func:`_stationary_candidates` for one problem (the repeated Procrustes angles left out)."""
+    lead, half = complex(b2, a2), 0.5 * complex(b1, a1)
+    # The coefficients are (lead, half, 0, conj(half), conj(lead)).
+    scale = max(abs(lead), abs(half))
+    procrustes = math.atan2(-b1, -a1)
+    if not abs(lead) > 1e-12 * (scale if scale > 0 else 1.0):
+        return [procrustes]
+    first_row = [-(x / lead) for x in (half, 0j, half.conjugate(), lead.conjugate())]
+    companion = np.array([first_row, [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], dtype=complex)
+    # LAPACK's zgeev, as np.linalg.eigvals calls it, without numpy's checks around the call
+    # (they cost as much as the 4 x 4 eigenproblem).
+    roots, _, _, info = zgeev(companion, compute_vl=0, compute_vr=0)
+    roots = (roots if info == 0 else np.linalg.eigvals(companion)).tolist()
+    angles = [cmath.phase(z) for z in roots]
+    return [a if math.isfinite(a) else procrustes for a in angles] + [procrustes]
+
+
 def rotation_fisher_information(c: Array, W: Array, phi_rad: Array) -> Array:
     """Fisher information of phi for measurements Rz(phi) c + noise with information W.
 
     Parameters
     ----------
     c : array, shape (..., n, 3)
-    W : array, shape (..., 3n, 3n)
+    W : array, shape (..., 3n, 3n) or (..., n, 3, 3)
     phi_rad : array, shape (...)
     """
     _, m_c, m_s = _basis_vectors(np.asarray(c, dtype=float))
     phi = np.asarray(phi_rad, dtype=float)[..., None]
     dm = -np.sin(phi) * m_c + np.cos(phi) * m_s
-    return np.sum(dm * np.einsum("...ij,...j->...i", np.asarray(W, dtype=float), dm), -1)
+    return np.sum(dm * _times(np.asarray(W, dtype=float), dm), -1)

@@ -5,6 +5,8 @@ All functions are vectorised over leading batch axes and use radians.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 Array = np.ndarray
@@ -16,6 +18,10 @@ def wrap_angle(angle_rad: Array | float) -> Array | float:
     Every estimated or compared angle in the project goes through this function, and errors
     between angles are ``wrap_angle(a - b)``.
     """
+    if isinstance(angle_rad, float):
+        # One angle (a frame's estimate): Python's float % is np.mod's arithmetic, without
+        # its per-call overhead.
+        return (float(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
     wrapped = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
     if np.ndim(wrapped) == 0:
         return float(wrapped)

@@ -1,16 +1,16 @@
 """``cathtrack demo``: the live loop end to end on an embedded simulated rig.
 
 A simulated controller streams the joint values of a session at 1 kHz as UDP datagrams over
-loopback; two simulated cameras (:mod:`~replay.simulation.render`, default rendering rig: 640x480,
-f = 2500 px, 400 mm away) render the bi-plane images of the catheter at 20 fps, rendered one
-pair at a time just before its exposure time and stamped on the same monotonic clock as the
-joints. The live loop (:class:`tracker.live.loop.LiveTracker`, the same code as ``cathtrack
-track``) receives the joints on a real socket, interpolates them to each image time, segments
-each pair (:class:`tracker.vision.segmentation.PairSegmenter`), reconstructs the markers, runs the
-UKF and sends every estimate back to the controller as a UDP datagram. The closed-form Tip
-Position estimator runs on the same observations for comparison. Everything goes to rerun
-(an ``.rrd`` file, and a viewer if asked for); at the end the accuracy of each method and the
-loop's latency are printed.
+loopback; two simulated cameras (:mod:`~replay.simulation.render`, default rendering rig:
+640x480, f = 2500 px, 400 mm away) render the bi-plane images of the catheter at 20 fps,
+rendered one pair at a time just before its exposure time and stamped on the same monotonic
+clock as the joints. The live session (:class:`tracker.live.session.LiveSession`, the same
+wiring as ``cathtrack track``) receives the joints on a real socket, interpolates them to each
+image time, segments each pair (:class:`tracker.vision.pair.PairSegmenter`), reconstructs the
+markers, runs the UKF and sends every estimate back to the controller as a UDP datagram.
+The closed-form Tip Position estimator runs on the same observations for comparison.
+Everything goes to rerun (an ``.rrd`` file, and a viewer if asked for); at the end the
+accuracy of each method and the loop's latency are printed.
 
 The estimators never see the truth: it is known to the simulated cameras only and joins the
 frames in the sinks that score and draw them.
@@ -18,9 +18,7 @@ frames in the sinks that score and draw them.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import signal
 import socket
 import sys
 import threading
@@ -33,12 +31,23 @@ import numpy as np
 
 from models.catheter import default_catheter
 from models.rotations import wrap_angle
-from tracker.live.sources import ImagePair
+from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
+from replay.simulation.simulator import default_scene
+from replay.simulation.sources import session_joints, simulated_session
+from tracker.estimators import make_estimator
+from tracker.io.datagrams import DatagramError, decode_estimate
+from tracker.io.udp import LOOPBACK, JointStreamer
+from tracker.live.loop import LiveSummary
+from tracker.live.session import LiveSession, SessionSettings
+from tracker.live.sinks import LiveStatus
+from tracker.live.sources import ImageSet
 from tracker.types import Estimate
+from tracker.viewer.output import serve_until_interrupted
+from tracker.viewer.sink import RerunSink
+from tracker.vision.pair import PairSegmenter
 
 Array = np.ndarray
 
-DEFAULT_RRD = "out/demo.rrd"
 COMPARE_METHOD = "tip-position"
 
 
@@ -62,6 +71,11 @@ class DemoSettings:
         Images in the rerun recording: at all, every n-th pair, JPEG quality.
     start_delay_s : float
         Time between setting up and the first exposure (sockets ready, first pair rendered).
+    image_noise_gray : float
+        Sensor noise of the rendered images, gray levels.
+    image_nuisance : ImagingNuisance
+        How each frame differs from the backgrounds (gain drift and flicker, offset, gamma,
+        vibration, a moved camera; none by default).
     """
 
     seconds: float = 15.0
@@ -74,6 +88,8 @@ class DemoSettings:
     image_every: int = 2
     jpeg_quality: int = 80
     start_delay_s: float = 0.3
+    image_noise_gray: float = RenderSettings().noise_sigma_gray
+    image_nuisance: ImagingNuisance = ImagingNuisance()
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -87,49 +103,56 @@ class DemoSettings:
 
 # ----------------------------------------------------------------------------- cameras
 class SimulatedCameras:
-    """Two cameras of the rendering rig, as a live source of :class:`ImagePair` items.
+    """Two cameras of the rendering rig, as a live source of :class:`ImageSet` items.
 
     Pair ``k`` shows the catheter at the session's joints and true delta_L at ``t_k``; it is
     rendered, then released at its exposure time ``start_s + t_k`` on the monotonic clock
-    and stamped with it, as a camera with a hardware time stamp would deliver it. The loop
-    therefore measures latency from the exposure (``time_is_monotonic``). Pairs that could
-    not be rendered in time are released late, still stamped with their exposure time, and
-    counted in ``late`` (more than ``late_after_s`` after their exposure).
+    (``start_s`` given to :meth:`start`) and stamped with it, as a camera with a hardware
+    time stamp would deliver it. The loop therefore measures latency from the exposure
+    (``time_is_monotonic``). Pairs that could not be rendered in time are released late,
+    still stamped with their exposure time, and counted in ``late`` (more than
+    ``late_after_s`` after their exposure).
 
     Parameters
     ----------
     renderer : replay.simulation.render.Renderer
     frames : sequence of Frame
         The session's frames (their joints and truth; their segmented points are ignored).
-    start_s : float
-        Monotonic time of the session's time 0.
     seed : int
         Seeds the sensor noise.
+    late_after_s : float
+        A pair released later than this after its exposure counts as late, s.
     """
 
     time_is_monotonic = True
 
     def __init__(
         self,
-        renderer,
+        renderer: Renderer,
         frames: Sequence,
-        start_s: float,
         seed: int = 0,
         late_after_s: float = 0.025,
     ) -> None:
         self.renderer = renderer
         self.frames = frames
-        self.start_s = float(start_s)
+        self.start_s: float | None = None
         self.seed = seed
         self.late_after_s = float(late_after_s)
         self.late = 0
         self._truth: dict[float, float] = {}
 
+    def start(self, start_s: float) -> SimulatedCameras:
+        """Set the monotonic time of the session's time 0 (before iterating)."""
+        self.start_s = float(start_s)
+        return self
+
     def truth(self, time_s: float) -> float | None:
         """True delta_L (rad) of the pair stamped ``time_s``."""
         return self._truth.get(float(time_s))
 
-    def __iter__(self) -> Iterator[ImagePair]:
+    def __iter__(self) -> Iterator[ImageSet]:
+        if self.start_s is None:
+            raise RuntimeError("SimulatedCameras.start(start_s) was not called")
         rng = np.random.default_rng(self.seed)
         for frame in self.frames:
             images = self.renderer.render(frame.q, frame.delta_L_true_rad, rng).images
@@ -140,37 +163,30 @@ class SimulatedCameras:
             elif -wait > self.late_after_s:
                 self.late += 1
             self._truth[exposure_s] = float(frame.delta_L_true_rad)
-            yield ImagePair(exposure_s, images[0], images[1])
+            yield ImageSet(exposure_s, tuple(images))
 
 
 # -------------------------------------------------------------------------- controller
 class SimulatedController:
     """The robot controller's side: joints out at 1 kHz, estimate datagrams in.
 
-    Joint datagrams come from a :class:`tracker.io.udp.JointStreamer` thread; a second thread
-    receives the estimates on a loopback socket (OS-assigned port) and counts them.
+    Its estimate socket (loopback, a port the OS picks: :attr:`estimate_address`) is open from
+    the start and counts the estimates in a thread; :meth:`start` then streams the joint
+    datagrams from a :class:`tracker.io.udp.JointStreamer` thread.
 
     Parameters
     ----------
-    joints_to : (host, port)
-        The loop's joint receiver.
     joints_at : callable
         Seconds since ``start_s`` -> (q, q_dot).
     rate_hz : float
-    start_s : float
-        Monotonic time of joint sample 0.
     """
 
     def __init__(
-        self,
-        joints_to: tuple[str, int],
-        joints_at: Callable[[float], tuple[Array, Array]],
-        rate_hz: float,
-        start_s: float,
+        self, joints_at: Callable[[float], tuple[Array, Array]], rate_hz: float
     ) -> None:
-        from tracker.io.udp import LOOPBACK, JointStreamer
-
-        self.streamer = JointStreamer(joints_to, joints_at, rate_hz, start_s=start_s)
+        self.joints_at = joints_at
+        self.rate_hz = float(rate_hz)
+        self.streamer: JointStreamer | None = None
         self.received = 0
         self.valid = 0
         self.malformed = 0
@@ -184,14 +200,14 @@ class SimulatedController:
     def estimate_address(self) -> tuple[str, int]:
         return self._sock.getsockname()
 
-    def start(self) -> SimulatedController:
+    def start(self, joints_to: tuple[str, int], start_s: float) -> SimulatedController:
+        """Stream joint sample ``k`` at ``start_s + k / rate_hz`` (monotonic) to ``joints_to``."""
+        self.streamer = JointStreamer(joints_to, self.joints_at, self.rate_hz, start_s=start_s)
         self.streamer.start()
         self._thread.start()
         return self
 
     def _receive(self) -> None:
-        from tracker.io.udp import DatagramError, decode_estimate
-
         while not self._stop.is_set():
             try:
                 data = self._sock.recv(256)
@@ -209,7 +225,8 @@ class SimulatedController:
 
     def stop(self, expected: int | None = None, timeout_s: float = 1.0) -> None:
         """Stop streaming joints; wait (up to ``timeout_s``) for ``expected`` estimates."""
-        self.streamer.stop()
+        if self.streamer is not None:
+            self.streamer.stop()
         deadline = time.monotonic() + timeout_s
         while expected is not None and self.received < expected and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -267,17 +284,19 @@ class ScoreSink:
     others : mapping of name to estimator
     truth : callable
         Image time -> true delta_L (rad) or None.
-    viewer : tracker.viewer.sink.RerunSink, optional
+    viewer : RerunSink, optional
     """
 
     name = "score"
 
-    def __init__(self, method: str, others: dict, truth: Callable, viewer=None) -> None:
+    def __init__(
+        self, method: str, others: dict, truth: Callable, viewer: RerunSink | None = None
+    ) -> None:
         self.truth, self.others, self.viewer = truth, others, viewer
         self.scores = {name: MethodScore(name) for name in (method, *others)}
         self.method = method
 
-    def handle(self, frame, observation, estimate, latency_s) -> None:
+    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE) -> None:
         truth = self.truth(frame.time_s)
         self.scores[self.method].add(estimate, truth)
         for name, estimator in self.others.items():
@@ -309,7 +328,7 @@ def header_line(settings: DemoSettings) -> str:
 def report_lines(
     settings: DemoSettings,
     scores: dict[str, MethodScore],
-    summary,
+    summary: LiveSummary,
     controller: SimulatedController,
     estimates_sent: int,
     rrd_path: Path | None,
@@ -368,23 +387,6 @@ def _report_stderr(message: str) -> None:
     print(f"cathtrack demo: {message}", file=sys.stderr, flush=True)
 
 
-def _serve_until_interrupted(url: str, out: Callable[[str], None]) -> None:
-    """Keep the gRPC server up for viewers until Ctrl-C or SIGTERM (even where a shell
-    started the process with SIGINT ignored)."""
-    out(f"serving the session to rerun viewers: rerun {url}  (Ctrl-C to stop)")
-    stop = threading.Event()
-    previous = {
-        signum: signal.signal(signum, lambda *_: stop.set())
-        for signum in (signal.SIGINT, signal.SIGTERM)
-    }
-    try:
-        while not stop.wait(0.5):  # short waits: the handlers run between them
-            pass
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-
 # ------------------------------------------------------------------------------- run
 def run_demo(
     settings: DemoSettings,
@@ -399,23 +401,8 @@ def run_demo(
     ----------
     settings : DemoSettings
     rerun_args : argparse.Namespace
-        The flags of :func:`tracker.viewer.sink.add_rerun_args` (``save``, ``connect``...).
+        The flags of :func:`tracker.viewer.output.add_rerun_args` (``save``, ``connect``...).
     """
-    from replay.simulation.render import Renderer, default_render_rig
-    from replay.simulation.simulator import default_scene
-    from replay.simulation.sources import session_joints, simulated_session
-    from tracker.estimators import make_estimator
-    from tracker.io.udp import LOOPBACK, EstimateSender, JointReceiver
-    from tracker.live.loop import LiveTracker
-    from tracker.reconstruction import Reconstructor
-    from tracker.viewer.sink import (
-        LiveViewerSink,
-        RerunSink,
-        default_blueprint,
-        open_rerun_output,
-    )
-    from tracker.vision.segmentation import PairSegmenter
-
     catheter = default_catheter()
     scene = default_scene(catheter, default_render_rig())
     session = simulated_session(
@@ -426,91 +413,75 @@ def run_demo(
         catheter=catheter,
         rig=scene.rig,
     )
-    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=settings.seed)
+    renderer = Renderer(
+        catheter,
+        scene.rig,
+        scene.R_w_b,
+        scene.o_b_w_mm,
+        RenderSettings(noise_sigma_gray=settings.image_noise_gray),
+        seed=settings.seed,
+        nuisance=settings.image_nuisance,
+    )
     segmenter = PairSegmenter(
         catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
     )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
-    estimator = make_estimator(settings.estimator, catheter)
     others = {name: make_estimator(name, catheter) for name in compare}
-    output = open_rerun_output(
-        rerun_args,
-        "cathtrack-demo",
-        blueprint=default_blueprint([settings.estimator, *compare], live=True),
-        report=report,
+    cameras = SimulatedCameras(
+        renderer, session.frames, settings.seed, 0.5 / settings.frame_rate_hz
     )
-    with contextlib.ExitStack() as stack:  # closes what was opened if the set-up fails
-        viewer = None
-        if output is not None:
-            viewer = RerunSink(
-                output.stream,
-                primary=settings.estimator,
-                jpeg_quality=settings.jpeg_quality,
-                time_origin_s=None,
-            )
-            stack.callback(viewer.close)
-        # The sockets: the loop's joint receiver and the controller's estimate socket, both
-        # on loopback with ports the OS picks.
-        joints = JointReceiver(LOOPBACK, 0, clock="sender")
-        stack.callback(joints.close)
-        start_s = time.monotonic() + settings.start_delay_s
-        controller = SimulatedController(
-            joints.address, session_joints, settings.joint_rate_hz, start_s
-        )
-        stack.callback(controller.stop)
-        sender = EstimateSender(controller.estimate_address, report=report)
-        stack.callback(sender.close)
-        cameras = SimulatedCameras(
-            renderer, session.frames, start_s, settings.seed, 0.5 / settings.frame_rate_hz
-        )
-        sinks: list = [sender]
-        viewer_sink = None
-        if viewer is not None:
-            viewer.time_origin_s = start_s
-            # With --serve the stream stays open after the run, for web viewers to look.
-            viewer_sink = LiveViewerSink(
-                viewer,
-                scene,
-                settings.estimator,
-                images=settings.images,
-                image_every=settings.image_every,
-                truth=cameras.truth,
-                watch=output.watch(),
-                report=report,
-                close_stream=output.served_url is None,
-            )
-            stack.callback(viewer_sink.close)  # stops the viewer watch too
-            sinks.append(viewer_sink)
-        scorer = ScoreSink(settings.estimator, others, cameras.truth, viewer)
-        sinks.append(scorer)
-        tracker = LiveTracker(
-            Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
-            estimator,
-            sinks,
-            joints=joints,
+    controller = SimulatedController(session_joints, settings.joint_rate_hz)
+    # The loop's joint receiver and the controller's estimate socket: loopback, ports the OS
+    # picks. With --serve the rerun stream stays open after the run, for web viewers to look.
+    live_settings = SessionSettings(
+        estimator=settings.estimator,
+        bind=LOOPBACK,
+        joints_port=0,
+        joint_clock="sender",
+        estimate_to=controller.estimate_address,
+        images=settings.images,
+        image_every=settings.image_every,
+        jpeg_quality=settings.jpeg_quality,
+        application_id="cathtrack-demo",
+        keep_serving=True,
+    )
+    try:
+        with LiveSession(
+            live_settings,
+            scene,
+            rerun_args=rerun_args,
             segmenter=segmenter,
+            viewer_methods=compare,
+            truth=cameras.truth,
             report=report,
-        )
-        if viewer_sink is not None:
-            viewer_sink.summary = tracker.summary
-        out(header_line(settings))
-        controller.start()
-        try:
-            summary = tracker.run(cameras)  # closes the sinks, the receiver and the source
-        finally:
-            controller.stop(expected=sender.sent)
-        lines = report_lines(
-            settings,
-            scorer.scores,
-            summary,
-            controller,
-            sender.sent,
-            None if output is None or output.served_url else output.rrd_path,
-            [] if output is None else [t for t in output.targets if not t.startswith("file")],
-            cameras.late,
-        )
-        for line in lines:
-            out(line)
-        if output is not None and output.served_url is not None and not summary.interrupted:
-            _serve_until_interrupted(output.served_url, out)
+        ) as live:
+            scorer = ScoreSink(settings.estimator, others, cameras.truth, live.viewer)
+            live.tracker.add_sink(scorer)
+            out(header_line(settings))
+            if live.output is not None:
+                out(f"cathtrack demo: rerun to {'; '.join(live.output.targets)}")
+            start_s = time.monotonic() + settings.start_delay_s
+            cameras.start(start_s)
+            controller.start(live.joints.address, start_s)
+            try:
+                summary = live.run(cameras)  # closes the sinks, the receiver and the source
+            finally:
+                controller.stop(expected=live.sender.sent)
+            output = live.output
+            lines = report_lines(
+                settings,
+                scorer.scores,
+                summary,
+                controller,
+                live.sender.sent,
+                None if output is None or output.served_url else output.rrd_path,
+                [] if output is None else [t for t in output.targets if not t.startswith("file")],
+                cameras.late,
+            )
+            for line in lines:
+                out(line)
+            if output is not None and output.served_url is not None and not summary.interrupted:
+                serve_until_interrupted(output, out)
+    finally:
+        controller.stop()
     return 130 if summary.interrupted else 0

@@ -41,9 +41,12 @@ from pathlib import Path
 import numpy as np
 
 from models.catheter import Catheter
-from models.imaging import BiplaneRig, default_orthographic_rig
+from models.imaging import Rig, default_orthographic_rig
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+from models.pose import Pose
+from models.rig_file import rig_toml
 from models.rotations import wrap_angle
+from replay.simulation.render import ImagingNuisance
 from replay.simulation.simulator import (
     JointTrajectory,
     NoiseSettings,
@@ -52,7 +55,7 @@ from replay.simulation.simulator import (
     in_plane_joint_offset,
     simulate_frames,
 )
-from tracker.io.recording import FrameLabels, MarkerQuality, RecordingWriter, rig_toml
+from tracker.io.recording import FrameLabels, MarkerQuality, RecordingWriter
 from tracker.types import Frame
 
 Array = np.ndarray
@@ -101,6 +104,10 @@ class ProtocolSettings:
         Joint motion about each configuration (q_r rad, q_p mm, q_d mm), sinusoidal...
     motion_period_s : float
         ...with this period.
+    image_nuisance : ImagingNuisance
+        With images: how each frame differs from the recorded backgrounds (gain drift and
+        flicker, offset, gamma, vibration, a moved camera; none by default). A dict of its
+        fields is accepted too (settings read back from a recording).
     """
 
     seed: int = 0
@@ -122,8 +129,11 @@ class ProtocolSettings:
     min_radius_mm: float = 6.0
     motion_amplitude: tuple[float, float, float] = (0.05, 0.08, 0.08)
     motion_period_s: float = 2.5
+    image_nuisance: ImagingNuisance = ImagingNuisance()
 
     def __post_init__(self) -> None:
+        if isinstance(self.image_nuisance, dict):
+            object.__setattr__(self, "image_nuisance", ImagingNuisance(**self.image_nuisance))
         for name in ("planes", "configurations", "frames_per_configuration"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)}")
@@ -308,19 +318,19 @@ def _scene(settings: ProtocolSettings, catheter: Catheter) -> Scene:
     if settings.rig == "pinhole":
         from replay.simulation.render import default_render_rig
 
-        rig: BiplaneRig = default_render_rig()
+        rig: Rig = default_render_rig()
     else:
         rig = default_orthographic_rig()
     return Scene(catheter, rig, np.eye(3), np.array([0.0, 0.0, -15.0]))
 
 
 def _inside_images(scene: Scene, q: Array, delta_L: float, margin_px: float = 12.0) -> bool:
-    """The whole catheter projects inside both images (pinhole rigs), with a margin."""
+    """The whole catheter projects inside every image (pinhole rigs), with a margin."""
     if scene.rig.kind != "pinhole":
         return True
     s = np.linspace(0.0, scene.catheter.length_mm, 12)
     points_w = scene.catheter.backbone(q, delta_L, s) @ scene.R_w_b.T + scene.o_b_w_mm
-    for view in (scene.rig.front, scene.rig.side):
+    for view in scene.rig.views:
         uv = view.project(points_w)
         width, height = view.image_size
         if np.any(uv < margin_px) or np.any(uv[:, 0] > width - 1 - margin_px):
@@ -334,7 +344,7 @@ def _overlaps_in_images(scene: Scene, q: Array, delta_L: float, clearance_px: fl
     """The catheter's image crosses or runs along itself in a view (pinhole rigs).
 
     Parts of the backbone more than 5 mm apart along the catheter must stay a tube diameter
-    plus ``clearance_px`` apart in both images; otherwise the segmentation cannot tell them
+    plus ``clearance_px`` apart in every image; otherwise the segmentation cannot tell them
     apart (it withholds the points, as it should) and the configuration is not one an
     experimenter would choose.
     """
@@ -344,7 +354,7 @@ def _overlaps_in_images(scene: Scene, q: Array, delta_L: float, clearance_px: fl
     s = np.linspace(0.0, catheter.length_mm, 59)
     points_w = catheter.backbone(q, delta_L, s) @ scene.R_w_b.T + scene.o_b_w_mm
     apart = np.abs(s[:, None] - s[None, :]) > 5.0
-    for view in (scene.rig.front, scene.rig.side):
+    for view in scene.rig.views:
         uv = view.project(points_w)
         px_per_mm = float(view.K[0, 0] / view.t_cam_w[2])
         distance = np.linalg.norm(uv[:, None, :] - uv[None, :, :], axis=-1)
@@ -439,7 +449,7 @@ def _catheter_from_text(text: str) -> Catheter:
 
 def configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
     """The frames of one configuration with their labels and segmentation quality."""
-    from replay.studies import single_blas_thread
+    from replay.parallel import single_blas_thread
 
     with single_blas_thread():
         return _configuration_frames(job)
@@ -468,7 +478,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
     ]
     if not s.images:
         trajectory = JointTrajectory(t_ns / 1e9, q, q_dot)
-        sigma = image_sigma(scene.rig.front, cfg.noise_level)
+        sigma = image_sigma(scene.rig.views[0], cfg.noise_level)
         frames = simulate_frames(
             scene,
             trajectory,
@@ -479,7 +489,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
         )
         return [(f, label, (None, None)) for f, label in zip(frames, labels, strict=True)]
     from replay.simulation.render import Renderer, RenderSettings
-    from tracker.vision.segmentation import PairSegmenter
+    from tracker.vision.pair import PairSegmenter
 
     renderer = Renderer(
         catheter,
@@ -488,6 +498,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
         scene.o_b_w_mm,
         RenderSettings(noise_sigma_gray=cfg.noise_level),
         seed=s.seed,
+        nuisance=s.image_nuisance,
     )
     segmenter = PairSegmenter(
         catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
@@ -497,10 +508,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
         pair = renderer.render(q[k] + offset[k], float(delta_L[k]), rng)
         seg = segmenter.segment(pair.images)
         frame = seg.frame(t_ns[k] / 1e9, q[k], q_dot[k], pair.images, float(delta_L[k]))
-        quality = (
-            MarkerQuality.from_segmentation(seg.front),
-            MarkerQuality.from_segmentation(seg.side),
-        )
+        quality = tuple(MarkerQuality.from_segmentation(view) for view in seg.views)
         out.append((frame, labels[k], quality))
     return out
 
@@ -606,12 +614,12 @@ def simulate_protocol(
     with RecordingWriter(
         path,
         model_toml=model_text,
-        rig_toml=rig_toml(scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        rig_toml=rig_toml(scene.rig, Pose(scene.R_w_b, scene.o_b_w_mm)),
         settings=recorded_settings,
         point_unit=unit,
     ) as writer:
         if settings.images:
-            for view, image in zip(("front", "side"), backgrounds(settings, catheter), strict=True):
+            for view, image in zip(scene.rig.names, backgrounds(settings, catheter), strict=True):
                 writer.write_background(view, image)
         j = 0
         results = _ordered(jobs, workers if settings.images else 1)

@@ -141,17 +141,41 @@ class Observation:
 
 
 def velocity_from_positions(
-    tip_now_b: Array, cov_now: Array, tip_before_b: Array, cov_before: Array, dt_s: float
+    tip_now_b: Array, cov_now: Array, tip_before_b: Array, cov_before: Array, dt_s
 ) -> tuple[Array, Array, Array]:
-    """Finite-difference velocity, its covariance, and its cross-covariance with ``tip_now``.
+    """Finite-difference tip velocity, its covariance, and its cross-covariance with ``tip_now``.
 
-    v = (p_t - p_{t-1}) / dt; cov(v) = (S_t + S_{t-1}) / dt^2; cov(v, p_t) = S_t / dt.
+    ``v = (p_t - p_{t-1}) / dt``, ``cov(v) = (S_t + S_{t-1}) / dt^2`` (independent noise in
+    the two frames) and ``cov(v, p_t) = S_t / dt``. This is the one finite-difference rule:
+    the Reconstructor, the batched UKF (``finite_difference_velocity``) and the studies call
+    it, one frame or many at once.
+
+    Parameters
+    ----------
+    tip_now_b, tip_before_b : arrays, shape (..., 3)
+        Tip in {B} at the frame and at the frame before, mm.
+    cov_now, cov_before : arrays, shape (..., 3, 3)
+        Their covariances, mm^2.
+    dt_s : float or array, shape (...)
+        Time between the two frames, s; positive and finite.
+
+    Returns
+    -------
+    velocity_b_mm_s : array, shape (..., 3)
+        mm/s.
+    velocity_cov_b, velocity_tip_cov_b : arrays, shape (..., 3, 3)
+        Covariance of the velocity (mm^2/s^2) and its cross-covariance with ``tip_now_b``
+        (mm^2/s).
     """
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        raise ValueError(f"frame interval must be positive and finite, got {dt_s} s")
-    v = (np.asarray(tip_now_b) - np.asarray(tip_before_b)) / dt_s
-    cov_v = (np.asarray(cov_now) + np.asarray(cov_before)) / dt_s**2
-    return v, cov_v, np.asarray(cov_now) / dt_s
+    dt = np.asarray(dt_s, dtype=float)
+    bad = ~(np.isfinite(dt) & (dt > 0))
+    if np.any(bad):
+        raise ValueError(f"frame interval must be positive and finite, got {dt[bad].flat[0]} s")
+    cov_now = np.asarray(cov_now, dtype=float)
+    tip_now_b, tip_before_b = np.asarray(tip_now_b, float), np.asarray(tip_before_b, float)
+    v = (tip_now_b - tip_before_b) / dt[..., None]
+    cov_v = (cov_now + np.asarray(cov_before, dtype=float)) / (dt**2)[..., None, None]
+    return v, cov_v, cov_now / dt[..., None, None]
 
 
 @dataclass(frozen=True)
@@ -185,7 +209,7 @@ class Estimate:
 
 @dataclass(frozen=True)
 class Frame:
-    """One synchronised bi-plane frame.
+    """One synchronised frame of every view of the rig.
 
     Parameters
     ----------
@@ -193,13 +217,14 @@ class Frame:
         Image time stamp, s.
     q, q_dot : arrays (3,)
         Joint values and rates interpolated to ``time_s``.
-    uv_front, uv_side : arrays (1 + n_markers, 2)
-        Segmented image points, rows ``[tip, marker_0, ...]`` in the catheter's marker order;
-        mm in the plane (orthographic) or px (pinhole); NaN rows for points not found.
-    cov_front, cov_side : arrays (1 + n_markers, 2, 2)
-        Segmentation-noise covariances of those points.
-    images : tuple of two arrays, optional
-        The grayscale images, when the source has them.
+    uv : tuple of arrays (1 + n_markers, 2)
+        Segmented image points of each view, in the rig's view order (``rig.names``): rows
+        ``[tip, marker_0, ...]`` in the catheter's marker order; mm in the plane
+        (orthographic) or px (pinhole); NaN rows for points not found.
+    cov : tuple of arrays (1 + n_markers, 2, 2)
+        Segmentation-noise covariances of those points, one array per view.
+    images : tuple of arrays, optional
+        The grayscale images of the views, when the source has them.
     delta_L_true_rad : float, optional
         Ground truth, where known (simulation, phantom with a tracker).
     """
@@ -207,10 +232,26 @@ class Frame:
     time_s: float
     q: Array
     q_dot: Array | None
-    uv_front: Array
-    uv_side: Array
-    cov_front: Array
-    cov_side: Array
-    images: tuple[Array, Array] | None = None
+    uv: tuple[Array, ...]
+    cov: tuple[Array, ...]
+    images: tuple[Array, ...] | None = None
     delta_L_true_rad: float | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.uv, np.ndarray) or isinstance(self.cov, np.ndarray):
+            raise TypeError("Frame uv and cov are sequences with one array per view")
+        uv, cov = tuple(self.uv), tuple(self.cov)
+        if len(uv) != len(cov) or len(uv) < 2:
+            raise ValueError(
+                f"a frame needs image points and covariances of two or more views, got"
+                f" {len(uv)} and {len(cov)}"
+            )
+        object.__setattr__(self, "uv", uv)
+        object.__setattr__(self, "cov", cov)
+        if self.images is not None:
+            object.__setattr__(self, "images", tuple(self.images))
+
+    @property
+    def n_views(self) -> int:
+        return len(self.uv)
 

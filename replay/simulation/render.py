@@ -5,12 +5,17 @@ C-arm) would record, so the vision front-end (rig calibration, segmentation) can
 end to end without hardware:
 
 - the catheter is a dark tube of the real outer diameters (1.2 mm proximal, 0.89 mm distal;
-  DESIGN.md section 1) drawn along the backbone and projected through a
+  docs/design.md section 1) drawn along the backbone and projected through a
   :class:`models.imaging.PinholeView`, with darker radio-opaque marker bands at the base, at
   every marker arclength of the model (frame {2} by default) and at the tip;
 - the scene behind it is a static, seeded, textured background; the catheter attenuates it
   (a transmission model: image = background x transmission), then blur and sensor noise;
-- checkerboards at known poses, for calibrating the synthetic rig (Zhang's method).
+- checkerboards at known poses, for calibrating the synthetic rig (Zhang's method);
+- what real imaging changes between the capture of the background and a frame
+  (:class:`ImagingNuisance`): the gain of an automatic exposure or brightness control, drifting
+  and flickering from frame to frame, an offset of the dark level, a gamma of the response
+  curve, and a shift of the whole image (a vibrating or bumped camera), drawn per view and
+  frame (:class:`ImagingChange`) and applied before the sensor noise.
 
 Anti-aliasing is by supersampling: polygons are filled on a canvas ``supersampling`` times
 finer and block-averaged, so edges are accurate to a small fraction of a pixel.
@@ -22,13 +27,14 @@ magnification from far away (the paper's orthographic model is its limit).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from models.catheter import Catheter
-from models.imaging import BiplaneRig, PinholeView, default_pinhole_rig
+from models.imaging import PinholeView, Rig, default_pinhole_rig
 
 Array = np.ndarray
 
@@ -39,7 +45,7 @@ DEFAULT_RENDER_FOCAL_PX = 2500.0
 :func:`models.imaging.default_pinhole_rig` has f = 1000 px: 2.5 px/mm, a 2.2 px wide tube.)"""
 
 
-def default_render_rig() -> BiplaneRig:
+def default_render_rig() -> Rig:
     """The rig the renderer and the vision tests use by default (f = 2500 px at 400 mm)."""
     return default_pinhole_rig(DEFAULT_RENDER_DISTANCE_MM, DEFAULT_RENDER_FOCAL_PX)
 
@@ -68,7 +74,7 @@ class RenderSettings:
     Parameters
     ----------
     proximal_diameter_mm, distal_diameter_mm : float
-        Outer diameters of the two segments (DESIGN.md section 1).
+        Outer diameters of the two segments (docs/design.md section 1).
     band_length_mm : float
         Length of each radio-opaque marker band. Bands are centred on their arclength and
         clipped to the catheter, so the base band is [0, b] and the tip band [L - b, L].
@@ -121,6 +127,121 @@ class RenderSettings:
                 "background_mean_gray +/- 2.5 background_texture_gray must stay within"
                 f" [20, 250] gray levels, got [{lo:.0f}, {hi:.0f}]"
             )
+
+
+# ------------------------------------------------------------------------------ nuisances
+@dataclass(frozen=True)
+class ImagingChange:
+    """What one frame of one view has changed since its background image was captured.
+
+    The camera records ``255 (gain x / 255)^gamma + offset_gray`` of the light x reaching it
+    (an exposure or brightness control, a response curve, a dark level), through a shift of
+    the whole image by ``shift_px`` (the camera moved); :func:`render_view` then adds the
+    sensor noise and quantises.
+    """
+
+    gain: float = 1.0
+    offset_gray: float = 0.0
+    gamma: float = 1.0
+    shift_px: tuple[float, float] = (0.0, 0.0)
+
+    def apply(self, image: Array) -> Array:
+        """The changed image (float32 gray levels, shape (h, w)) of the scene's light."""
+        out = np.asarray(image, np.float32)
+        dx, dy = self.shift_px
+        if dx or dy:
+            move = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], np.float32)
+            out = cv2.warpAffine(out, move, out.shape[::-1], flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REFLECT)
+        if self.gamma != 1.0:
+            out = 255.0 * (np.maximum(self.gain * out, 0.0) / 255.0) ** self.gamma
+        elif self.gain != 1.0:
+            out = self.gain * out
+        if self.offset_gray:
+            out = out + self.offset_gray
+        return out.astype(np.float32)
+
+    def points_px(self, uv: Array) -> Array:
+        """Where image points (n, 2) of the unchanged camera land in the changed image, px."""
+        return np.asarray(uv, float) + np.asarray(self.shift_px, float)
+
+
+NO_CHANGE = ImagingChange()
+
+
+@dataclass(frozen=True)
+class ImagingNuisance:
+    """How frames differ from the background image, drawn per view and frame.
+
+    Parameters
+    ----------
+    gain_flicker : float
+        Each frame's gain varies uniformly within +/- this (0.15: 0.85 to 1.15), on top of...
+    gain_drift : float
+        ...a slow change of the gain: a mean-reverting random walk of this standard deviation
+        (the drift of a lamp or of an automatic brightness control)...
+    drift_frames : float
+        ...with this correlation time, frames.
+    offset_gray : float
+        Each frame's offset (dark level) is uniform within +/- this, gray levels.
+    gamma_range : float
+        Each frame's gamma is uniform within 1 +/- this.
+    vibration_px : float
+        Standard deviation of each frame's shift of the whole image along each axis, px.
+    shift_px : (float, float)
+        A fixed shift of the whole image (a camera moved since the background), px.
+    """
+
+    gain_flicker: float = 0.0
+    gain_drift: float = 0.0
+    drift_frames: float = 100.0
+    offset_gray: float = 0.0
+    gamma_range: float = 0.0
+    vibration_px: float = 0.0
+    shift_px: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        for name in ("gain_flicker", "gain_drift", "offset_gray", "gamma_range", "vibration_px"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be >= 0, got {value}")
+        if not self.gain_flicker + 3.0 * self.gain_drift < 1.0:
+            raise ValueError("gain_flicker + 3 gain_drift must stay below 1 (a positive gain)")
+        if not 0 <= self.gamma_range < 1:
+            raise ValueError(f"gamma_range must lie in [0, 1), got {self.gamma_range}")
+        if not self.drift_frames >= 1:
+            raise ValueError(f"drift_frames must be >= 1, got {self.drift_frames}")
+        if len(self.shift_px) != 2 or not np.all(np.isfinite(self.shift_px)):
+            raise ValueError(f"shift_px must be two finite numbers, got {self.shift_px}")
+        object.__setattr__(self, "shift_px", tuple(float(v) for v in self.shift_px))
+
+    @property
+    def active(self) -> bool:
+        return self != ImagingNuisance(drift_frames=self.drift_frames)
+
+    def drift_step(self, drift: float | None, rng: np.random.Generator) -> float:
+        """The next value of the gain drift (the first from its stationary distribution)."""
+        if not self.gain_drift:
+            return 0.0
+        if drift is None:
+            return float(self.gain_drift * rng.standard_normal())
+        rho = float(np.exp(-1.0 / self.drift_frames))
+        step = np.sqrt(1.0 - rho**2) * self.gain_drift * rng.standard_normal()
+        return float(np.clip(rho * drift + step, -3.0 * self.gain_drift, 3.0 * self.gain_drift))
+
+    def draw(self, drift: float, rng: np.random.Generator) -> ImagingChange:
+        """One frame's change, given the current gain drift (only what is set draws numbers)."""
+        gain = 1.0 + drift
+        if self.gain_flicker:
+            gain += rng.uniform(-self.gain_flicker, self.gain_flicker)
+        offset = rng.uniform(-self.offset_gray, self.offset_gray) if self.offset_gray else 0.0
+        gamma = 1.0 + rng.uniform(-self.gamma_range, self.gamma_range) if self.gamma_range else 1.0
+        shift = np.asarray(self.shift_px, float)
+        if self.vibration_px:
+            shift = shift + self.vibration_px * rng.standard_normal(2)
+        return ImagingChange(
+            float(gain), float(offset), float(gamma), (float(shift[0]), float(shift[1]))
+        )
 
 
 # ---------------------------------------------------------------------------- background
@@ -331,6 +452,7 @@ def render_view(
     rng: np.random.Generator,
     settings: RenderSettings = RenderSettings(),
     occluders: list[tuple[int, int, int, int]] = (),
+    change: ImagingChange = NO_CHANGE,
 ) -> Array:
     """One grayscale 8-bit image of the catheter (or of the empty scene when pose is None).
 
@@ -347,6 +469,8 @@ def render_view(
     occluders : list of (x, y, w, h)
         Bright rectangles in front of everything (a tool or a hand hiding part of the
         catheter), px.
+    change : ImagingChange
+        What the camera changes since the background (applied before the sensor noise).
 
     Returns
     -------
@@ -363,6 +487,8 @@ def render_view(
             image[y0 : y0 + h, x0 : x0 + w] *= T
     for x, y, w, h in occluders:
         image[max(y, 0) : y + h, max(x, 0) : x + w] = 245.0
+    if change != NO_CHANGE:
+        image = change.apply(image)
     if settings.noise_sigma_gray > 0:
         image += settings.noise_sigma_gray * rng.standard_normal(image.shape).astype(np.float32)
     return quantise(image)
@@ -370,13 +496,19 @@ def render_view(
 
 @dataclass(frozen=True)
 class RenderedPair:
-    """Images of both views, the empty-scene priors and the true image points."""
+    """Images of every view (in the rig's order), the empty-scene priors and the true image
+    points.
 
-    images: tuple[Array, Array]  # uint8 (h, w) each
-    backgrounds: tuple[Array, Array]  # uint8 prior images of the empty scene
-    base_px: tuple[Array, Array]  # (2,) projected base per view
-    points_px: tuple[Array, Array]  # (1 + n_markers, 2): [tip, marker_0, ...] per view
+    ``points_px`` are where the points are in the images as rendered: with a shift of the
+    whole image (:class:`ImagingChange`), the projection moved by that shift.
+    """
+
+    images: tuple[Array, ...]  # uint8 (h, w) each
+    backgrounds: tuple[Array, ...]  # uint8 prior images of the empty scene
+    base_px: tuple[Array, ...]  # (2,) projected base per view
+    points_px: tuple[Array, ...]  # (1 + n_markers, 2): [tip, marker_0, ...] per view
     points_w: Array  # (1 + n_markers, 3) true points in {W}, mm
+    changes: tuple[ImagingChange, ...] = ()  # per view: what changed since the background
 
 
 def true_points_w(catheter: Catheter, pose: CatheterPose) -> Array:
@@ -391,24 +523,28 @@ class Renderer:
     Parameters
     ----------
     catheter : Catheter
-    rig : BiplaneRig
+    rig : Rig
         Pinhole views (from a rig file or :func:`default_render_rig`).
     R_w_b, o_b_w_mm : arrays (3, 3), (3,)
         Registered pose of the catheter base in {W}.
     settings : RenderSettings
     seed : int
-        Seeds the backgrounds (one per view); sensor noise comes from the generator given to
-        :meth:`render`.
+        Seeds the backgrounds (one per view); sensor noise and the nuisances come from the
+        generator given to :meth:`render`.
+    nuisance : ImagingNuisance
+        How each frame differs from the backgrounds (none by default). The gain drift is the
+        renderer's only state: it moves on with every :meth:`render`.
     """
 
     def __init__(
         self,
         catheter: Catheter,
-        rig: BiplaneRig,
+        rig: Rig,
         R_w_b: Array,
         o_b_w_mm: Array,
         settings: RenderSettings = RenderSettings(),
         seed: int = 0,
+        nuisance: ImagingNuisance = ImagingNuisance(),
     ) -> None:
         if rig.kind != "pinhole":
             raise ValueError("the renderer needs pinhole views (use far_view for orthographic)")
@@ -417,17 +553,19 @@ class Renderer:
         self.R_w_b = np.asarray(R_w_b, float)
         self.o_b_w_mm = np.asarray(o_b_w_mm, float)
         self.settings = settings
-        self.views = (rig.front, rig.side)
+        self.views = rig.views
         self.background_float = tuple(
             render_background(v.image_size, seed + 7919 * k, settings)
             for k, v in enumerate(self.views)
         )
         self.backgrounds = tuple(quantise(bg) for bg in self.background_float)
+        self.nuisance = nuisance
+        self._drift: list[float | None] = [None] * len(self.views)
 
     def pose(self, q: Array, delta_L_rad: float) -> CatheterPose:
         return CatheterPose(np.asarray(q, float), float(delta_L_rad), self.R_w_b, self.o_b_w_mm)
 
-    def base_px(self) -> tuple[Array, Array]:
+    def base_px(self) -> tuple[Array, ...]:
         """The registered base projected into each view, px."""
         return tuple(v.project(self.o_b_w_mm) for v in self.views)
 
@@ -436,21 +574,36 @@ class Renderer:
         q: Array,
         delta_L_rad: float,
         rng: np.random.Generator,
-        occluders: tuple[list, list] = ((), ()),
+        occluders: Sequence[list] | None = None,
     ) -> RenderedPair:
-        """Both images of the catheter at joints q and torsional loss delta_L."""
+        """Every view's image of the catheter at joints q and torsional loss delta_L.
+
+        ``occluders``: per view, a list of rectangles (:func:`render_view`), or None.
+        """
+        if occluders is None:
+            occluders = ((),) * len(self.views)
         pose = self.pose(q, delta_L_rad)
         points_w = true_points_w(self.catheter, pose)
-        images = tuple(
-            render_view(v, self.catheter, pose, bg, rng, self.settings, occ)
-            for v, bg, occ in zip(self.views, self.background_float, occluders, strict=True)
-        )
+        images, points_px, changes = [], [], []
+        for k, (view, bg, occ) in enumerate(
+            zip(self.views, self.background_float, occluders, strict=True)
+        ):
+            change = NO_CHANGE
+            if self.nuisance.active:
+                self._drift[k] = self.nuisance.drift_step(self._drift[k], rng)
+                change = self.nuisance.draw(self._drift[k], rng)
+            images.append(
+                render_view(view, self.catheter, pose, bg, rng, self.settings, occ, change)
+            )
+            points_px.append(change.points_px(view.project(points_w)))
+            changes.append(change)
         return RenderedPair(
-            images=images,
+            images=tuple(images),
             backgrounds=self.backgrounds,
             base_px=self.base_px(),
-            points_px=tuple(v.project(points_w) for v in self.views),
+            points_px=tuple(points_px),
             points_w=points_w,
+            changes=tuple(changes),
         )
 
 

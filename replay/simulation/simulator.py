@@ -13,13 +13,13 @@ catheter's markers (:func:`point_arclengths`); each is segmented with independen
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import brentq
 
 from models.catheter import Catheter
-from models.imaging import BiplaneRig, OrthographicPlane, PinholeView, isotropic_covariance
+from models.imaging import OrthographicPlane, PinholeView, Rig, isotropic_covariance
 from models.modal import ModalSegment
 from models.rotations import rotate_z
 from tracker.types import Frame
@@ -334,12 +334,12 @@ class Scene:
     """The catheter, the rig and the registered base pose of a simulated session."""
 
     catheter: Catheter
-    rig: BiplaneRig
+    rig: Rig
     R_w_b: Array
     o_b_w_mm: Array
 
 
-def default_scene(catheter: Catheter, rig: BiplaneRig) -> Scene:
+def default_scene(catheter: Catheter, rig: Rig) -> Scene:
     """Base 15 mm below the world origin, z_b along world z (up in both images)."""
     return Scene(catheter, rig, np.eye(3), np.array([0.0, 0.0, -15.0]))
 
@@ -396,7 +396,7 @@ def simulate_frames(
     n_frames, n_points = points_w.shape[:2]
     cov = np.broadcast_to(isotropic_covariance(noise.sigma), (n_points, 2, 2))
     views = []
-    for view in (scene.rig.front, scene.rig.side):
+    for view in scene.rig.views:
         uv = view.project(points_w)
         uv = uv + noise.sigma * rng.standard_normal(uv.shape)
         outlier = rng.random((n_frames, n_points)) < noise.outlier_probability
@@ -410,10 +410,8 @@ def simulate_frames(
             time_s=float(trajectory.time_s[i]),
             q=trajectory.q[i],
             q_dot=trajectory.q_dot[i],
-            uv_front=views[0][i],
-            uv_side=views[1][i],
-            cov_front=cov,
-            cov_side=cov,
+            uv=tuple(uv[i] for uv in views),
+            cov=(cov,) * len(views),
             delta_L_true_rad=float(delta_L[i]),
         )
         for i in range(n_frames)
@@ -431,14 +429,12 @@ class FrameBatch:
     trajectory: JointTrajectory  # the commanded joints of every trial, T frames
     delta_L_rad: Array  # (n, T) true torsional loss
     points_w: Array  # (n, T, P, 3) true points in {W}, mm (tip first, then markers)
-    uv_front: Array  # (n, T, P, 2) segmented points, NaN where dropped
-    uv_side: Array  # (n, T, P, 2)
-    cov_front: Array  # (P, 2, 2) segmentation-noise covariance in the image unit
-    cov_side: Array  # (P, 2, 2)
+    uv: tuple[Array, ...]  # per view (n, T, P, 2) segmented points, NaN where dropped
+    cov: tuple[Array, ...]  # per view (P, 2, 2) segmentation-noise covariance, image unit
 
     @property
     def n_trials(self) -> int:
-        return int(self.uv_front.shape[0])
+        return int(self.uv[0].shape[0])
 
     def frames(self, trial: int) -> list[Frame]:
         """Trial ``trial`` as the frames the live loop consumes."""
@@ -448,10 +444,8 @@ class FrameBatch:
                 time_s=float(t.time_s[k]),
                 q=t.q[k],
                 q_dot=t.q_dot[k],
-                uv_front=self.uv_front[trial, k],
-                uv_side=self.uv_side[trial, k],
-                cov_front=self.cov_front,
-                cov_side=self.cov_side,
+                uv=tuple(uv[trial, k] for uv in self.uv),
+                cov=self.cov,
                 delta_L_true_rad=float(self.delta_L_rad[trial, k]),
             )
             for k in range(t.time_s.size)
@@ -518,6 +512,76 @@ def simulate_batch(
     points_w = points_b @ scene.R_w_b.T + scene.o_b_w_mm
     n_points = c.shape[1]
     cov = np.broadcast_to(isotropic_covariance(noise.sigma), (n_points, 2, 2)).copy()
-    uv_front = _noisy_images(scene.rig.front.project(points_w), noise, rng)
-    uv_side = _noisy_images(scene.rig.side.project(points_w), noise, rng)
-    return FrameBatch(trajectory, delta_L, points_w, uv_front, uv_side, cov, cov.copy())
+    uv = tuple(_noisy_images(view.project(points_w), noise, rng) for view in scene.rig.views)
+    covs = tuple(cov.copy() for _ in scene.rig.views)
+    return FrameBatch(trajectory, delta_L, points_w, uv, covs)
+
+
+@dataclass(frozen=True)
+class LabConditions:
+    """What a lab meets beyond segmentation noise (the ``cathtrack simulate`` options).
+
+    Parameters
+    ----------
+    model_scale_error : float
+        Relative model error: the true catheter bends ``1 + model_scale_error`` times as much
+        as the model says (every modal-matrix column of a joint-dependent basis function is
+        scaled; the straight configuration stays straight). 0.05 is a 5 % error.
+    contact_joint_std_mm : float
+        Contact deviation, mm: per configuration the catheter bends as if q_p and q_d were off
+        by independent normal deviations of this std (:func:`contact_joint_offsets`).
+    outlier_probability : float
+        Probability that a segmented point in one view is a gross error.
+    outlier_magnitude : float
+        Size of such an error, image units (mm in a plane, px in a camera).
+    dropout_probability : float
+        Probability that a point is not segmented in one view.
+    windup_play_rad : float
+        Torsion wind-up with this play (:func:`torsion_windup`), rad; 0: no wind-up.
+    """
+
+    model_scale_error: float = 0.0
+    contact_joint_std_mm: float = 0.0
+    outlier_probability: float = 0.0
+    outlier_magnitude: float = 10.0
+    dropout_probability: float = 0.0
+    windup_play_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("contact_joint_std_mm", "outlier_magnitude", "windup_play_rad"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be finite and non-negative, got {value}")
+        if not (np.isfinite(self.model_scale_error) and self.model_scale_error > -1):
+            raise ValueError(f"model_scale_error must be > -1, got {self.model_scale_error}")
+        NoiseSettings(0.0, self.outlier_probability, self.outlier_magnitude,
+                      self.dropout_probability)  # fmt: skip
+
+    def noise(self, sigma: float) -> NoiseSettings:
+        """Segmentation noise ``sigma`` (image units) with these outliers and dropouts."""
+        return NoiseSettings(
+            sigma, self.outlier_probability, self.outlier_magnitude, self.dropout_probability
+        )
+
+
+def truth_catheter(catheter: Catheter, model_scale_error: float) -> Catheter:
+    """The catheter as it really bends when the model errs by ``model_scale_error``."""
+    if model_scale_error == 0.0:
+        return catheter
+    probe = np.linspace(-1.0, 1.0, 5)
+    segments = []
+    for segment in (catheter.proximal, catheter.distal):
+        values = segment.eta.values(probe)
+        varying = np.ptp(values, axis=0) > 0
+        A = np.array(segment.A, dtype=float)
+        A[:, varying] *= 1.0 + model_scale_error
+        segments.append(replace(segment, A=A))
+    return replace(catheter, proximal=segments[0], distal=segments[1])
+
+
+def contact_joint_offsets(rng: np.random.Generator, n: int, std_mm: float) -> Array:
+    """Joint offsets (rad, mm, mm) of n configurations: q_p and q_d off by N(0, std^2)."""
+    offsets = np.zeros((n, 3))
+    if std_mm > 0:
+        offsets[:, 1:] = std_mm * rng.standard_normal((n, 2))
+    return offsets

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.catheter import Catheter, default_catheter
-from models.imaging import BiplaneRig, default_orthographic_rig
+from models.imaging import Rig, default_orthographic_rig
 from replay.simulation.simulator import (
     JointTrajectory,
     NoiseSettings,
@@ -18,8 +18,8 @@ from replay.simulation.simulator import (
     sinusoidal,
     torsion_windup,
 )
-from tracker.io.udp import SegmentedMarkers
-from tracker.live.sources import ImagePair, PacedSource
+from tracker.io.datagrams import SegmentedMarkers
+from tracker.live.sources import ImageSet, PacedSource
 from tracker.types import Frame
 
 Array = np.ndarray
@@ -63,7 +63,7 @@ def simulated_session(
     noise: float = 0.5,
     seed: int = 0,
     catheter: Catheter | None = None,
-    rig: BiplaneRig | None = None,
+    rig: Rig | None = None,
 ) -> SimulatedSession:
     """The demo's session: bending sweeps while the base turns, torsion wind-up with play.
 
@@ -105,14 +105,14 @@ class SimulatedSource(PacedSource):
     ) -> None:
         if not joints:
             frames = (
-                SegmentedMarkers(f.time_s, f.uv_front, f.uv_side, f.cov_front, f.cov_side, i)
+                SegmentedMarkers(f.time_s, f.uv, f.cov, i)
                 for i, f in enumerate(frames)
             )
         super().__init__(frames, speed, **kwargs)
 
 
 class RenderedSource(PacedSource):
-    """Rendered bi-plane images of simulated frames, as :class:`ImagePair`.
+    """Rendered bi-plane images of simulated frames, as :class:`ImageSet`.
 
     Parameters
     ----------
@@ -128,10 +128,10 @@ class RenderedSource(PacedSource):
     def __init__(self, renderer, frames: Iterable[Frame], seed: int = 0, speed=1.0, **kwargs):
         rng = np.random.default_rng(seed)
 
-        def pairs() -> Iterator[ImagePair]:
+        def pairs() -> Iterator[ImageSet]:
             for f in frames:
                 images = renderer.render(f.q, f.delta_L_true_rad, rng).images
-                yield ImagePair(f.time_s, images[0], images[1])
+                yield ImageSet(f.time_s, tuple(images))
 
         super().__init__(pairs(), speed, **kwargs)
 

@@ -1,4 +1,4 @@
-"""Direct and instantaneous kinematics of the two-segment catheter (DESIGN.md section 3)."""
+"""Direct and instantaneous kinematics of the two-segment catheter (docs/design.md section 3)."""
 
 from __future__ import annotations
 

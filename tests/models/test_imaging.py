@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from models.imaging import (
-    BiplaneRig,
     OrthographicPlane,
     PinholeView,
+    Rig,
     default_orthographic_rig,
     default_pinhole_rig,
     isotropic_covariance,
@@ -19,12 +19,12 @@ DIST_SIDE = np.array([0.15, -0.05, -8e-4, 6e-4, 0.0])
 RIGS = ["orthographic", "orthographic-oblique", "pinhole", "pinhole-distorted"]
 
 
-def make_rig(name: str) -> BiplaneRig:
+def make_rig(name: str) -> Rig:
     """The default rigs, an oblique orthographic rig and an oblique distorted camera pair."""
     if name == "orthographic":
         return default_orthographic_rig()
     if name == "orthographic-oblique":
-        return BiplaneRig(
+        return Rig(
             OrthographicPlane.from_normal([0.3, -1.0, 0.2], in_plane_rotation_rad=0.4),
             OrthographicPlane.from_normal([1.0, 0.5, -0.3], in_plane_rotation_rad=-1.1),
         )
@@ -33,7 +33,7 @@ def make_rig(name: str) -> BiplaneRig:
     up = np.array([0.0, 0.0, 1.0])
     front = PinholeView.look_at([40.0, -380.0, 90.0], [5.0, 0.0, -10.0], up, 1100.0)
     side = PinholeView.look_at([390.0, 60.0, -80.0], [0.0, 5.0, 0.0], up, 950.0)
-    return BiplaneRig(
+    return Rig(
         replace(front, K=np.array([[1100.0, 0, 300], [0, 1050, 250], [0, 0, 1]]), dist=DIST_FRONT),
         replace(side, dist=DIST_SIDE),
     )
@@ -57,10 +57,10 @@ def test_orthographic_reconstruction_is_eq_estDK(name):
     rng = np.random.default_rng(2)
     # Inconsistent measurements, so the pseudo-inverse really solves a least-squares problem.
     uv_front, uv_side = rng.normal(0.0, 10.0, (2, 2, 2))
-    P = np.vstack([rig.front.projector_w, rig.side.projector_w])
+    P = np.vstack([rig.views[0].projector_w, rig.views[1].projector_w])
     for k in range(2):
         rhs = np.concatenate(
-            [rig.front.R_w_view @ [*uv_front[k], 0.0], rig.side.R_w_view @ [*uv_side[k], 0.0]]
+            [rig.views[0].R_w_view @ [*uv_front[k], 0.0], rig.views[1].R_w_view @ [*uv_side[k], 0.0]]
         )
         expected = np.linalg.pinv(P) @ rhs
         np.testing.assert_allclose(rig.reconstruct(uv_front[k], uv_side[k]), expected, atol=1e-12)
@@ -84,7 +84,7 @@ def test_projection_jacobian_matches_finite_differences(name):
     rig = make_rig(name)
     points_w = np.random.default_rng(4).uniform(-20.0, 20.0, (4, 3))
     h = 1e-4  # mm; central differences are then accurate to ~1e-8 relative
-    for view in (rig.front, rig.side):
+    for view in (rig.views[0], rig.views[1]):
         J = view.projection_jacobian(points_w)
         assert J.shape == (4, 2, 3)
         for i in range(3):
@@ -94,7 +94,7 @@ def test_projection_jacobian_matches_finite_differences(name):
 
 
 def test_undistort_inverts_the_distortion():
-    view = make_rig("pinhole-distorted").front
+    view = make_rig("pinhole-distorted").views[0]
     points_w = np.random.default_rng(5).uniform(-60.0, 60.0, (50, 3))
     distorted = view.project(points_w)
     ideal = replace(view, dist=None).project(points_w)
@@ -106,15 +106,15 @@ def test_default_rigs_show_the_same_images():
     """Points in each plane through the origin: pixel = centre + f / d * (u, -v), exactly."""
     ortho, pinhole = default_orthographic_rig(), default_pinhole_rig(400.0, 1000.0)
     uv = np.random.default_rng(6).uniform(-30.0, 30.0, (10, 2))
-    for plane, camera in ((ortho.front, pinhole.front), (ortho.side, pinhole.side)):
+    for plane, camera in ((ortho.views[0], pinhole.views[0]), (ortho.views[1], pinhole.views[1])):
         np.testing.assert_allclose(plane.project(uv @ plane.R_w_view[:, :2].T), uv, atol=1e-12)
         centre = np.array([319.5, 239.5])
         expected = centre + 1000.0 / 400.0 * uv * [1.0, -1.0]
         np.testing.assert_allclose(
             camera.project(uv @ plane.R_w_view[:, :2].T), expected, rtol=0, atol=1e-9
         )
-    np.testing.assert_allclose(ortho.front.normal_w, [0.0, -1.0, 0.0], atol=1e-15)
-    np.testing.assert_allclose(ortho.side.normal_w, [1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(ortho.views[0].normal_w, [0.0, -1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(ortho.views[1].normal_w, [1.0, 0.0, 0.0], atol=1e-15)
 
 
 def test_from_normal_builds_a_rotated_frame():
@@ -149,8 +149,8 @@ def test_far_pinhole_rig_converges_to_the_orthographic_one():
         pinhole = default_pinhole_rig(distance_mm, focal_px=1000.0 * distance_mm / 400.0)
         # Each plane passes through the target and faces its camera, so the point of the plane
         # with in-plane coordinates uv is seen at that measurement's pixel.
-        px_front = pinhole.front.project(uv_front @ ortho.front.R_w_view[:, :2].T)
-        px_side = pinhole.side.project(uv_side @ ortho.side.R_w_view[:, :2].T)
+        px_front = pinhole.views[0].project(uv_front @ ortho.views[0].R_w_view[:, :2].T)
+        px_side = pinhole.views[1].project(uv_side @ ortho.views[1].R_w_view[:, :2].T)
         differences.append(np.abs(pinhole.reconstruct(px_front, px_side) - expected).max())
     assert differences[0] > differences[1] > differences[2]
     assert differences[0] > 1e-2  # perspective matters at 1 m ...
@@ -234,8 +234,8 @@ def test_parallel_planes_are_rejected():
     flipped = OrthographicPlane.from_normal([0.0, -1.0, 0.0])
     for side in (tilted, flipped):
         with pytest.raises(ValueError, match="cannot reconstruct: imaging planes are parallel"):
-            BiplaneRig(front, side)
-    BiplaneRig(front, OrthographicPlane.from_normal([np.sin(0.05), np.cos(0.05), 0.0]))
+            Rig(front, side)
+    Rig(front, OrthographicPlane.from_normal([np.sin(0.05), np.cos(0.05), 0.0]))
 
 
 def test_coincident_cameras_are_rejected():
@@ -243,16 +243,16 @@ def test_coincident_cameras_are_rejected():
     front = PinholeView.look_at([0.0, -400.0, 0.0], [0.0, 0.0, 0.0], up, 1000.0)
     side = PinholeView.look_at([0.0, -400.0, 0.5], [50.0, 0.0, 0.0], up, 1000.0)
     with pytest.raises(ValueError, match="camera centres are 0.5 mm apart"):
-        BiplaneRig(front, side)
+        Rig(front, side)
 
 
 def test_mixed_view_kinds_are_rejected():
-    plane = default_orthographic_rig().front
-    camera = default_pinhole_rig().side
+    plane = default_orthographic_rig().views[0]
+    camera = default_pinhole_rig().views[1]
     with pytest.raises(ValueError, match="same kind"):
-        BiplaneRig(plane, camera)
+        Rig(plane, camera)
     with pytest.raises(TypeError, match="OrthographicPlane or a PinholeView"):
-        BiplaneRig(plane, "side")
+        Rig(plane, "side")
 
 
 @pytest.mark.parametrize("name", ["orthographic", "pinhole"])
@@ -278,10 +278,10 @@ def test_points_behind_a_camera_are_rejected():
     rig = default_pinhole_rig(400.0)
     behind = np.array([[0.0, 0.0, 0.0], [0.0, -500.0, 0.0]])  # behind the front camera at y = -400
     with pytest.raises(ValueError, match="1 point\\(s\\) behind the camera"):
-        rig.front.project(behind)
+        rig.views[0].project(behind)
     with pytest.raises(ValueError, match="behind the camera"):
         rig.reconstruction_covariance(behind, np.eye(2), np.eye(2))
-    rig.side.project(behind)  # in front of the side camera: fine
+    rig.views[1].project(behind)  # in front of the side camera: fine
 
 
 def test_parallel_viewing_rays_are_rejected():
@@ -296,7 +296,7 @@ def test_bad_views_are_rejected():
         OrthographicPlane(np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(ValueError, match="non-zero vector"):
         OrthographicPlane.from_normal([0.0, 0.0, 0.0])
-    camera = default_pinhole_rig().front
+    camera = default_pinhole_rig().views[0]
     with pytest.raises(ValueError, match="no skew"):
         replace(camera, K=np.array([[1000.0, 2.0, 320.0], [0.0, 1000.0, 240.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="positive focal lengths"):

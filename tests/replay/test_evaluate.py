@@ -15,7 +15,9 @@ from replay.cli import main
 from replay.protocol import ProtocolSettings, build_protocol, simulate_protocol
 from replay.simulation.render import default_render_rig
 from replay.simulation.simulator import NoiseSettings, Scene, simulate_frames, sinusoidal
+from tracker.io.recording import FrameLabels, ReadReport, RecordedFrame
 from tracker.reconstruction import Reconstructor
+from tracker.types import Estimate, Frame
 
 PAPER_METHODS = ["tip-position", "body-positions", "tip-velocity", "ukf"]
 
@@ -129,43 +131,90 @@ def test_paper_protocol_markers_only_tables(tmp_path):
     assert all(check.holds for check in result.checks())
 
 
-@pytest.mark.parametrize("kind", ["pinhole", "orthographic"])
-def test_batch_reconstruction_matches_the_live_reconstructor(kind):
-    """observations_batch gives what Reconstructor.observe gives frame by frame."""
+def _synthetic_replay(n_frames: int, seed: int = 0) -> evaluation.Replay:
+    """A replay of n frames, each with its own deflection and noise label, and two methods
+    whose errors have a known spread (no estimator is run)."""
+    rng = np.random.default_rng(seed)
     catheter = default_catheter()
-    rig = default_render_rig() if kind == "pinhole" else default_orthographic_rig()
-    scene = Scene(catheter, rig, np.eye(3), np.array([0.0, 0.0, -15.0]))
-    trajectory = sinusoidal([0.3, 0.6, 0.4], [0.3, 0.1, 0.1], [3, 3, 3], 3.0)
-    noise = NoiseSettings(sigma=0.5, dropout_probability=0.15)
-    frames = simulate_frames(scene, trajectory, 1.0, noise, np.random.default_rng(2))
-    frames[7] = frames[7].__class__(**{**frames[7].__dict__, "q_dot": None})
-    reconstructor = Reconstructor(catheter, rig, scene.R_w_b, scene.o_b_w_mm)
-    batch = evaluation.observations_batch(reconstructor, frames)
-    reconstructor.reset()
-    single = [reconstructor.observe(f) for f in frames]
-    assert sum(len(o.views) for o in single) > 0  # some single-view points
-    assert sum(o.velocity_b_mm_s is not None for o in single) > 0
-    for a, b in zip(batch, single, strict=True):
-        assert a.time_s == b.time_s
-        for name in (
-            "q",
-            "q_dot",
-            "tip_b_mm",
-            "tip_cov_b",
-            "markers_b_mm",
-            "markers_cov_b",
-            "velocity_b_mm_s",
-            "velocity_cov_b",
-            "velocity_tip_cov_b",
-        ):
-            x, y = getattr(a, name), getattr(b, name)
-            assert (x is None) == (y is None), name
-            if x is not None:
-                np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12, err_msg=name)
-        assert len(a.views) == len(b.views)
-        for va, vb in zip(a.views, b.views, strict=True):
-            np.testing.assert_array_equal(va.uv, vb.uv)
-            np.testing.assert_array_equal(va.point_index, vb.point_index)
+    scene = Scene(catheter, default_orthographic_rig(), np.eye(3), np.array([0.0, 0.0, -15.0]))
+    points = np.zeros((1 + len(catheter.marker_arclengths_mm), 2))
+    covs = np.tile(np.eye(2), (points.shape[0], 1, 1))
+    truth = rng.uniform(-np.pi, np.pi, n_frames)
+    frames = [
+        RecordedFrame(
+            Frame(0.05 * i, np.zeros(3), None, (points, points), (covs, covs), None, truth[i]),
+            FrameLabels(
+                plane=i % 3,
+                configuration=i // 100,
+                deflection_mm=float(rng.uniform(0.0, 10.0)),
+                noise_level=float(rng.uniform(0.1, 3.0)),
+            ),
+        )
+        for i in range(n_frames)
+    ]
+    results = {}
+    for name, std in (("tip-position", 0.05), ("ukf", 0.01)):
+        delta = truth + std * rng.standard_normal(n_frames)
+        estimates = tuple(
+            Estimate(0.05 * i, delta[i], std, 0.0, nis=1.0, nis_dof=3) for i in range(n_frames)
+        )
+        results[name] = evaluation.MethodResult(name, estimates, truth)
+    return evaluation.Replay(
+        path="synthetic.mcap",
+        source="markers",
+        scene=scene,
+        frames=frames,
+        observations=[],
+        results=results,
+        bound_rad=np.full(n_frames, 0.04),
+        sigma_image=np.ones(n_frames),
+        report=ReadReport("synthetic.mcap"),
+        settings={"noise_unit": "mm"},
+    )
+
+
+def test_continuous_labels_are_binned():
+    """5,000 frames, each with its own deflection and noise: a few ranges, not 5,000 groups."""
+    n = 5000
+    replay = _synthetic_replay(n)
+    tables = evaluation.replay_tables(replay)
+    deflection = evaluation.bin_names(evaluation.DEFLECTION_BIN_EDGES_MM)
+    noise = evaluation.bin_names(evaluation.NOISE_BIN_EDGES)
+    methods = ["tip-position", "ukf", evaluation.BOUND_NAME]
+    for table, names in (("deflection", deflection), ("noise", noise)):
+        rows = tables[table]
+        groups = list(dict.fromkeys(row["group"] for row in rows))
+        assert set(groups) <= set(names) and len(groups) >= 4, groups
+        assert groups == [g for g in names if g in groups]  # in order of the ranges
+        assert len(rows) == len(groups) * len(methods)
+        assert sum(r["frames"] for r in rows if r["method"] == "ukf") == n
+    deflection_mm = np.array([r.labels.deflection_mm for r in replay.frames])
+    row = next(r for r in tables["deflection"] if r["group"] == "2 to 4" and r["method"] == "ukf")
+    inside = (deflection_mm >= 2.0) & (deflection_mm < 4.0)
+    assert row["frames"] == np.count_nonzero(inside)
+    assert row["group_median"] == pytest.approx(np.median(deflection_mm[inside]))
+    # each group's statistics are those of its frames
+    errors = replay.results["ukf"].errors_rad[inside]
+    assert row["rms_deg"] == pytest.approx(np.degrees(np.sqrt(np.mean(errors**2))))
+    # labels with a few levels keep one group per value
+    assert {r["group"] for r in tables["plane"]} == {0, 1, 2}
+    assert len({r["group"] for r in tables["configuration"]}) == n // 100
+    assert [r["method"] for r in tables["consistency"]] == ["tip-position", "ukf"]
+    markdown = evaluation.replay_markdown(replay, tables)
+    assert "| 2 to 4 |" in markdown and "median (mm)" in markdown
+
+
+def test_groups_by_value_or_by_range():
+    include = np.array([True, True, True, False, True, True])
+    groups = evaluation.group_frames([2, None, 0, 0, 2, 5], include)
+    assert [(g.key, g.frames.tolist()) for g in groups] == [(0, [2]), (2, [0, 4]), (5, [5])]
+    values = list(np.linspace(0.0, 9.0, 10))  # more distinct values than LEVELS_MAX
+    groups = evaluation.group_frames(values, np.ones(10, bool), (1.0, 4.0))
+    assert [(g.key, g.frames.tolist(), g.median) for g in groups] == [
+        ("< 1", [0], 0.0),
+        ("1 to 4", [1, 2, 3], 2.0),
+        (">= 4", [4, 5, 6, 7, 8, 9], 6.5),
+    ]
 
 
 def test_protocol_layout_is_the_papers():
@@ -288,7 +337,9 @@ def test_rerun_sink_logs_frames_and_estimates_for_the_live_loop(tmp_path):
     from rerun.chunk import RrdReader
 
     from tracker.estimators import make_estimator
-    from tracker.viewer.sink import RerunSink, default_blueprint, file_stream
+    from tracker.viewer.layout import default_blueprint
+    from tracker.viewer.output import file_stream
+    from tracker.viewer.sink import RerunSink
 
     catheter = default_catheter()
     scene = Scene(catheter, default_render_rig(), np.eye(3), np.array([0.0, 0.0, -15.0]))

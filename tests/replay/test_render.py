@@ -7,6 +7,8 @@ from models.catheter import default_catheter
 from models.imaging import PinholeView
 from replay.simulation.render import (
     CatheterPose,
+    ImagingChange,
+    ImagingNuisance,
     Renderer,
     RenderSettings,
     board_corners_board,
@@ -33,7 +35,7 @@ def test_images_are_8_bit_of_the_view_size_and_seeded(renderer):
     q = np.array([0.4, 0.6, -0.3])
     a = renderer.render(q, 0.2, np.random.default_rng(1))
     b = renderer.render(q, 0.2, np.random.default_rng(1))
-    for image, view in zip(a.images, (renderer.rig.front, renderer.rig.side), strict=True):
+    for image, view in zip(a.images, (renderer.rig.views[0], renderer.rig.views[1]), strict=True):
         width, height = view.image_size
         assert image.shape == (height, width) and image.dtype == np.uint8
     assert all(np.array_equal(x, y) for x, y in zip(a.images, b.images, strict=True))
@@ -52,7 +54,7 @@ def test_background_is_static_per_seed_and_textured():
 def test_empty_scene_is_the_background_plus_noise(renderer):
     settings = renderer.settings
     image = render_view(
-        renderer.rig.front, renderer.catheter, None, renderer.background_float[0],
+        renderer.rig.views[0], renderer.catheter, None, renderer.background_float[0],
         np.random.default_rng(0), settings,
     )
     residual = image.astype(float) - renderer.background_float[0]
@@ -67,13 +69,13 @@ def test_tube_width_is_the_outer_diameter_in_pixels(segment, s_mm, diameter_mm):
     rig = default_render_rig()
     settings = RenderSettings(noise_sigma_gray=0.0)
     pose = CatheterPose(np.zeros(3), 0.0, np.eye(3), BASE_W)
-    T, (x0, y0, w, h) = transmission(rig.front, catheter, pose, settings)
+    T, (x0, y0, w, h) = transmission(rig.views[0], catheter, pose, settings)
     point = catheter_points_w(catheter, pose, [s_mm])[0]
-    u, v = rig.front.project(point)
+    u, v = rig.views[0].project(point)
     row = 1.0 - T[int(round(v)) - y0]
-    depth = (rig.front.R_cam_w @ point + rig.front.t_cam_w)[2]
+    depth = (rig.views[0].R_cam_w @ point + rig.views[0].t_cam_w)[2]
     width_px = row.sum() / settings.tube_attenuation
-    assert width_px == pytest.approx(diameter_mm * rig.front.K[0, 0] / depth, rel=0.03)
+    assert width_px == pytest.approx(diameter_mm * rig.views[0].K[0, 0] / depth, rel=0.03)
     assert x0 <= u - 5 and u + 5 <= x0 + w
 
 
@@ -81,10 +83,10 @@ def test_marker_bands_are_darker_at_the_marker_arclengths(renderer):
     q = np.array([0.3, 0.5, 0.4])
     settings = RenderSettings(noise_sigma_gray=0.0)
     pose = renderer.pose(q, 0.0)
-    T, (x0, y0, _, _) = transmission(renderer.rig.front, renderer.catheter, pose, settings)
+    T, (x0, y0, _, _) = transmission(renderer.rig.views[0], renderer.catheter, pose, settings)
     L1 = renderer.catheter.proximal.length_mm
     at = catheter_points_w(renderer.catheter, pose, [0.5, L1, L1 - 3.0, 28.5])
-    uv = np.rint(renderer.rig.front.project(at)).astype(int)
+    uv = np.rint(renderer.rig.views[0].project(at)).astype(int)
     blocked = 1.0 - T[uv[:, 1] - y0, uv[:, 0] - x0]
     band, tube = settings.band_attenuation, settings.tube_attenuation
     assert blocked[0] > 0.9 * band and blocked[1] > 0.9 * band and blocked[3] > 0.9 * band
@@ -93,12 +95,12 @@ def test_marker_bands_are_darker_at_the_marker_arclengths(renderer):
 
 def test_catheter_out_of_view_gives_the_background(renderer):
     away = CatheterPose(np.zeros(3), 0.0, np.eye(3), np.array([500.0, 0.0, 0.0]))
-    T, roi = transmission(renderer.rig.front, renderer.catheter, away)
+    T, roi = transmission(renderer.rig.views[0], renderer.catheter, away)
     assert roi[2] == 0 or roi[3] == 0 or np.all(T == 1.0)
 
 
 def test_far_view_keeps_the_magnification_and_tends_to_orthographic():
-    view = default_render_rig().front
+    view = default_render_rig().views[0]
     far = far_view(view, 50.0)
     point = np.array([10.0, 20.0, 5.0])  # 20 mm nearer the far side than the origin
     assert np.allclose(far.project(np.zeros(3)), view.project(np.zeros(3)))
@@ -112,7 +114,7 @@ def test_far_view_keeps_the_magnification_and_tends_to_orthographic():
 
 
 def test_checkerboard_corners_land_where_the_board_projects():
-    view = default_render_rig().front
+    view = default_render_rig().views[0]
     pattern, square_mm = (9, 6), 5.0
     R, o = look_at_board([0.0, 0.0, 0.0], [0.3, -1.0, 0.2], [0.0, 0.0, 1.0], pattern, square_mm)
     image = render_checkerboard(
@@ -128,7 +130,7 @@ def test_checkerboard_corners_land_where_the_board_projects():
 
 
 def test_board_seen_from_behind_shows_no_pattern():
-    view = default_render_rig().front
+    view = default_render_rig().views[0]
     R, o = look_at_board([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], (9, 6), 5.0)
     image = render_checkerboard(view, R, o, (9, 6), 5.0, np.random.default_rng(0))
     assert find_corners(image, (9, 6)) is None
@@ -140,10 +142,67 @@ def test_bad_settings_and_inputs_are_clear_errors(renderer):
     with pytest.raises(ValueError, match="supersampling"):
         RenderSettings(supersampling=0)
     with pytest.raises(ValueError, match="background"):
-        render_view(renderer.rig.front, renderer.catheter, None, np.zeros((10, 10)),
+        render_view(renderer.rig.views[0], renderer.catheter, None, np.zeros((10, 10)),
                     np.random.default_rng(0))
     distorted = PinholeView(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), np.eye(3),
                             [0, 0, 400.0], dist=[0.1, 0, 0, 0, 0])
     with pytest.raises(ValueError, match="undistorted"):
         render_checkerboard(distorted, np.eye(3), np.zeros(3), (9, 6), 5.0,
                             np.random.default_rng(0))
+
+
+# ----------------------------------------------------------------------------- nuisances
+def test_imaging_change_is_a_tone_curve_and_a_shift():
+    flat = np.full((40, 60), 100.0, np.float32)
+    out = ImagingChange(gain=1.1, offset_gray=5.0, gamma=0.9).apply(flat)
+    np.testing.assert_allclose(out, 255.0 * (110.0 / 255.0) ** 0.9 + 5.0, rtol=1e-5)
+    spot = np.zeros((40, 60), np.float32)
+    spot[20, 30] = 100.0
+    change = ImagingChange(shift_px=(2.0, -3.0))
+    moved = change.apply(spot)
+    assert np.unravel_index(np.argmax(moved), moved.shape) == (17, 32)
+    np.testing.assert_allclose(change.points_px([[30.0, 20.0]]), [[32.0, 17.0]])
+
+
+def test_nuisances_are_drawn_per_view_and_frame_and_leave_the_plain_renderer_alone(renderer):
+    q = np.array([0.4, 0.6, -0.3])
+    # Without nuisances the renderer draws exactly what render_view draws (the noise only).
+    plain = renderer.render(q, 0.2, np.random.default_rng(1))
+    direct = render_view(
+        renderer.rig.views[0], renderer.catheter, renderer.pose(q, 0.2),
+        renderer.background_float[0], np.random.default_rng(1), renderer.settings,
+    )
+    assert np.array_equal(plain.images[0], direct)
+    assert all(change == ImagingChange() for change in plain.changes)
+    nuisance = ImagingNuisance(
+        gain_flicker=0.1, gain_drift=0.02, offset_gray=5.0, gamma_range=0.05, vibration_px=0.3
+    )
+    runs = []
+    for _ in range(2):
+        shaky = Renderer(renderer.catheter, renderer.rig, np.eye(3), BASE_W, seed=4,
+                         nuisance=nuisance)
+        rng = np.random.default_rng(2)
+        runs.append([shaky.render(q, 0.2, rng) for _ in range(15)])
+    assert all(
+        np.array_equal(x, y)
+        for a, b in zip(*runs, strict=True) for x, y in zip(a.images, b.images, strict=True)
+    )  # seeded
+    changes = [c for pair in runs[0] for c in pair.changes]
+    gains = np.array([c.gain for c in changes])
+    assert np.all(np.abs(gains - 1.0) <= 0.1 + 3 * 0.02) and gains.std() > 0.02
+    assert all(abs(c.offset_gray) <= 5.0 and abs(c.gamma - 1.0) <= 0.05 for c in changes)
+    assert len({c.gain for c in runs[0][0].changes}) == 2  # each view its own
+    for pair in runs[0]:
+        for view, points, change in zip(renderer.rig.views, pair.points_px, pair.changes,
+                                        strict=True):
+            np.testing.assert_allclose(points, view.project(pair.points_w) + change.shift_px)
+
+
+@pytest.mark.parametrize(
+    "options, match",
+    [({"gain_flicker": 1.2}, "gain"), ({"gamma_range": 1.5}, "gamma_range"),
+     ({"offset_gray": -1.0}, "offset_gray"), ({"shift_px": (1.0,)}, "shift_px")],
+)
+def test_bad_nuisances_are_clear_errors(options, match):
+    with pytest.raises(ValueError, match=match):
+        ImagingNuisance(**options)

@@ -166,9 +166,9 @@ def test_deflections_reach_the_frames(view):
 
 
 def test_image_sigma_is_mm_in_a_plane_and_px_in_a_camera():
-    assert image_sigma(default_orthographic_rig().front, 1.5) == 1.5
+    assert image_sigma(default_orthographic_rig().views[0], 1.5) == 1.5
     # 1000 px focal length at 400 mm: 2.5 px per mm at the isocentre.
-    assert image_sigma(default_pinhole_rig().front, 1.5) == pytest.approx(3.75)
+    assert image_sigma(default_pinhole_rig().views[0], 1.5) == pytest.approx(3.75)
 
 
 @pytest.mark.parametrize("view", VIEWS)
@@ -181,9 +181,9 @@ def test_simulation_is_seeded_and_reproducible(view):
     ]
     other = simulate_frames(scene, trajectory, 0.4, noise, np.random.default_rng(8))
     for a, b, c in zip(*runs, other, strict=True):
-        assert np.array_equal(a.uv_front, b.uv_front, equal_nan=True)
-        assert np.array_equal(a.uv_side, b.uv_side, equal_nan=True)
-        assert not np.array_equal(a.uv_front, c.uv_front, equal_nan=True)
+        assert np.array_equal(a.uv[0], b.uv[0], equal_nan=True)
+        assert np.array_equal(a.uv[1], b.uv[1], equal_nan=True)
+        assert not np.array_equal(a.uv[0], c.uv[0], equal_nan=True)
 
 
 def test_outliers_and_dropped_markers():
@@ -196,7 +196,7 @@ def test_outliers_and_dropped_markers():
     dirty = simulate_frames(scene, trajectory, 0.0, noise, np.random.default_rng(0))
     shift = np.array(
         [
-            np.linalg.norm(d.uv_front - c.uv_front, axis=-1)
+            np.linalg.norm(d.uv[0] - c.uv[0], axis=-1)
             for d, c in zip(dirty, clean, strict=True)
         ]
     )
@@ -210,7 +210,7 @@ def test_outliers_and_dropped_markers():
         NoiseSettings(sigma=1.0, dropout_probability=1.0),
         np.random.default_rng(0),
     )
-    assert all(np.isnan(f.uv_front).all() and np.isnan(f.uv_side).all() for f in dropped)
+    assert all(np.isnan(f.uv[0]).all() and np.isnan(f.uv[1]).all() for f in dropped)
 
 
 @pytest.mark.parametrize(
@@ -248,7 +248,7 @@ def test_batch_trials_are_sessions_of_frames(view):
         np.random.default_rng(0),
         out_of_plane_mm=1.5,
     )
-    assert batch.uv_front.shape == (3, 6, len(point_arclengths(scene.catheter)), 2)
+    assert batch.uv[0].shape == (3, 6, len(point_arclengths(scene.catheter)), 2)
     for i, truth in enumerate(delta_L):
         frames = batch.frames(i)
         single = simulate_frames(
@@ -260,6 +260,6 @@ def test_batch_trials_are_sessions_of_frames(view):
             out_of_plane_mm=1.5,
         )
         for a, b in zip(frames, single, strict=True):
-            assert a.uv_front == pytest.approx(b.uv_front, abs=1e-9)
-            assert a.uv_side == pytest.approx(b.uv_side, abs=1e-9)
+            assert a.uv[0] == pytest.approx(b.uv[0], abs=1e-9)
+            assert a.uv[1] == pytest.approx(b.uv[1], abs=1e-9)
             assert a.delta_L_true_rad == truth

@@ -6,8 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
 from replay.cli import main
+from replay.parallel import single_blas_thread
 from replay.studies import (
     CSV_COLUMNS,
     SensitivitySettings,
@@ -238,6 +240,23 @@ def test_tasks_have_independent_streams_and_cover_every_trial():
     for point in study_points(TINY):
         mine = [t for t in tasks if t.point == point]
         assert [(t.start, t.stop) for t in mine] == [(0, 20), (20, 30)]
+
+
+def _blas_threads() -> list[int]:
+    return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+def test_tasks_run_on_one_blas_thread_and_the_last_one_out_restores_the_count():
+    """Tasks in threads of one process (a Dask worker) leave in any order."""
+    before = _blas_threads()
+    first, second = single_blas_thread(), single_blas_thread()
+    first.__enter__()
+    second.__enter__()
+    assert all(n == 1 for n in _blas_threads())
+    first.__exit__(None, None, None)
+    assert all(n == 1 for n in _blas_threads())
+    second.__exit__(None, None, None)
+    assert _blas_threads() == before
 
 
 # ------------------------------------------------------------------------------ bad settings

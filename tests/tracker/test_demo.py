@@ -20,9 +20,15 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
+from models.model_file import DEFAULT_MODEL_PATH
+from models.pose import Pose
+from models.rig_file import rig_toml
 from models.rotations import wrap_angle
 from replay.cli import main
-from tracker.io.udp import decode_estimate, encode_joints, encode_markers
+from replay.simulation.sources import session_joints, simulated_session
+from tracker.io.datagrams import decode_estimate, encode_joints, encode_markers
+from tracker.io.recording import RecordingWriter, open_recording
+from tracker.live.sinks import CSV_COLUMNS
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -122,14 +128,10 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """A 3 s recording of a simulated session (markers in mm) and its rig file."""
-    from models.model_file import DEFAULT_MODEL_PATH
-    from replay.simulation.sources import simulated_session
-    from tracker.io.recording import RecordingWriter, rig_toml
-
     folder = tmp_path_factory.mktemp("recorded")
     session = simulated_session(duration_s=3.0, frame_rate_hz=20.0, noise=0.3, seed=1)
     scene = session.scene
-    rig = rig_toml(scene.rig, scene.R_w_b, scene.o_b_w_mm)
+    rig = rig_toml(scene.rig, Pose(scene.R_w_b, scene.o_b_w_mm))
     path = folder / "session.mcap"
     with RecordingWriter(
         path, model_toml=DEFAULT_MODEL_PATH.read_text(), rig_toml=rig, point_unit="mm"
@@ -144,11 +146,9 @@ def recorded(tmp_path_factory):
 def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
     recorded, tmp_path, capsys
 ):
-    from tracker.io.recording import open_recording
-
     session, path, _ = recorded
     controller = Controller()
-    rrd, mcap = tmp_path / "track.rrd", tmp_path / "track.mcap"
+    rrd, mcap, csv = tmp_path / "track.rrd", tmp_path / "track.mcap", tmp_path / "track.csv"
     viewer_url = f"rerun+http://{LOOPBACK}:{free_port(socket.SOCK_STREAM)}/proxy"
     try:
         code = main(
@@ -159,6 +159,7 @@ def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
                 "--estimate-to", f"{LOOPBACK}:{controller.port}",
                 "--igtl-port", "0",
                 "--record", str(mcap),
+                "--csv", str(csv),
                 "--save", str(rrd),
                 "--connect", "--url", viewer_url,
             ]
@@ -182,6 +183,8 @@ def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
     with open_recording(mcap) as recording:
         assert len(recording) == n
         assert len(recording.estimates["ukf"]) == n
+    lines = csv.read_text().splitlines()
+    assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == n + 1
 
 
 def test_track_takes_markers_and_joints_over_udp(recorded, capsys):
@@ -209,15 +212,13 @@ def test_track_takes_markers_and_joints_over_udp(recorded, capsys):
             assert thread.is_alive() and time.monotonic() < deadline, "track did not listen"
             thread.join(0.01)  # let it start
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as robot:
-            from replay.simulation.sources import session_joints
-
             # 100 Hz up to 1 s, in one burst: it fits the default socket buffer (1 kHz live
             # streaming is tested in test_live.py).
             for k in range(101):
                 t = k / 100
                 robot.sendto(encode_joints(k, t, *session_joints(t)), (LOOPBACK, joints_port))
             for k, frame in enumerate(frames):
-                data = encode_markers(k, frame.time_s, frame.uv_front, frame.uv_side, 0.3, 0.3)
+                data = encode_markers(k, frame.time_s, frame.uv, (0.3, 0.3))
                 robot.sendto(data, (LOOPBACK, markers_port))
         thread.join(30.0)
         assert not thread.is_alive()
@@ -289,7 +290,5 @@ def test_ctrl_c_stops_track_prints_the_summary_and_closes_the_files(recorded, tm
     assert process.returncode == 130, stderr
     assert "live loop ended (interrupted)" in stdout and "Traceback" not in stderr
     RrdReader(rrd).store()  # the .rrd has its footer
-    from tracker.io.recording import open_recording
-
     with open_recording(mcap) as recording:  # and the recording its summary
         assert recording.report.ok

@@ -3,12 +3,20 @@
 import numpy as np
 import pytest
 
-from models.bounds import crb_markers, crb_tip, crb_velocity
+from models.bounds import (
+    block_diagonal,
+    crb_markers,
+    crb_tip,
+    crb_velocity,
+    information_from_covariance,
+)
 from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig, isotropic_covariance
-from models.rotations import wrap_angle
+from models.rotation_fit import fit_rotation_z
+from models.rotations import rotate_z, wrap_angle
 from tracker.estimators import estimator_names, make_estimator
-from tracker.types import Flag, Observation
+from tracker.estimators.per_frame import PerFrameEstimator, build_problem_batch, closed_form_batch
+from tracker.types import Flag, Observation, velocity_from_positions
 
 DELTA_2 = [0.0, np.pi / 2]
 BENT = [np.array([0.3, 0.8, 0.6]), np.array([-1.2, -0.7, 0.9])]
@@ -216,3 +224,102 @@ def test_unknown_estimator_name_is_one_clear_error():
     with pytest.raises(ValueError, match="unknown estimator 'tip'.*tip-position"):
         make_estimator("tip", default_catheter())
     assert "ukf" in estimator_names()
+
+
+# ------------------------------------------------------------------------------ single frame
+def _random_covariance(rng, isotropic):
+    if isotropic:
+        return np.diag([1.0, 1.0, 0.5]) * rng.uniform(0.2, 2.0)
+    a = rng.normal(size=(3, 3))
+    return a @ a.T + 0.1 * np.eye(3)
+
+
+def _weighted_cost(y, c, W, phi):
+    r = (y - rotate_z(c, phi)).ravel()
+    return r @ W @ r
+
+
+@pytest.mark.parametrize("delta_2", DELTA_2)
+@pytest.mark.parametrize("isotropic", [True, False], ids=["isotropic", "anisotropic"])
+def test_one_frame_is_the_batched_closed_form_of_the_same_frames(delta_2, isotropic):
+    """The single-frame path (Python floats) and the batched one (numpy) agree to rounding."""
+    catheter = default_catheter(delta_2)
+    rng = np.random.default_rng(21)
+    n = 40
+    q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)])
+    q_dot = rng.uniform(-1, 1, (n, 3))
+    truth = rng.uniform(-np.pi, np.pi, n)
+    shape = catheter.shape_vectors(q, q_dot)
+    c = np.concatenate([shape.c_tip_mm[:, None], shape.c_markers_mm], axis=1)
+    cov = np.stack([[_random_covariance(rng, isotropic) for _ in c[0]] for _ in range(n)])
+    noise = np.stack([[rng.multivariate_normal(np.zeros(3), s) for s in frame] for frame in cov])
+    points = rotate_z(c, (q[:, 0] + truth)[:, None]) + noise
+    before = points[:, 0] - rng.normal(size=(n, 3))
+    velocity, velocity_cov, _ = velocity_from_positions(
+        points[:, 0], cov[:, 0], before, cov[:, 0], 0.1
+    )
+    for kind, name in PerFrameEstimator.NAMES.items():
+        if kind == "velocity":
+            problem = build_problem_batch(
+                kind, shape, velocity_b_mm_s=velocity, velocity_cov_b=velocity_cov
+            )
+        else:
+            problem = build_problem_batch(kind, shape, points, cov)
+        delta_L, std = closed_form_batch(problem)
+        estimator = make_estimator(name, catheter)
+        for i in range(n):
+            obs = Observation(
+                time_s=0.0, q=q[i], q_dot=q_dot[i], tip_b_mm=points[i, 0], tip_cov_b=cov[i, 0],
+                markers_b_mm=points[i, 1:], markers_cov_b=cov[i, 1:],
+                velocity_b_mm_s=velocity[i], velocity_cov_b=velocity_cov[i],
+            )  # fmt: skip
+            estimate = estimator.step(obs)
+            assert abs(wrap_angle(estimate.delta_L_rad - delta_L[i])) < 1e-12, (name, i)
+            assert estimate.std_rad == pytest.approx(std[i], rel=1e-12), (name, i)
+
+
+@pytest.mark.parametrize("n_points", [1, 2, 3])
+def test_rotation_fit_of_one_problem_is_a_batch_of_one_and_information_per_vector_is_joint(
+    n_points,
+):
+    """fit_rotation_z: one problem (floats) = a batch of one (numpy); W per vector = joint W;
+    and the minimiser is converged (no neighbour has a lower cost)."""
+    rng = np.random.default_rng(n_points)
+    for _ in range(50):
+        c = rng.normal(size=(n_points, 3)) * 10
+        cov = np.stack([_random_covariance(rng, False) for _ in range(n_points)])
+        y = rotate_z(c, rng.uniform(-np.pi, np.pi)) + rng.normal(size=(n_points, 3))
+        W_points = information_from_covariance(cov)
+        W_joint = information_from_covariance(block_diagonal(cov))
+        np.testing.assert_allclose(block_diagonal(W_points), W_joint, rtol=1e-12, atol=1e-12)
+        one = fit_rotation_z(y, c, W_joint)
+        others = [fit_rotation_z(y[None], c[None], W_joint[None])]
+        if n_points > 1:
+            others += [fit_rotation_z(y, c, W_points), fit_rotation_z(y[None], c[None], W_points[None])]
+        for fit in others:
+            assert abs(wrap_angle(float(np.squeeze(fit.phi_rad)) - one.phi_rad)) < 1e-12
+            for name in ("fisher_information", "cost", "informative_radius_mm"):
+                value = float(np.squeeze(getattr(fit, name)))
+                assert value == pytest.approx(getattr(one, name), rel=1e-10, abs=1e-12), name
+        at = _weighted_cost(y, c, W_joint, one.phi_rad)
+        assert at == pytest.approx(one.cost, rel=1e-9, abs=1e-9)
+        for step in (-1e-5, 1e-5):
+            assert at <= _weighted_cost(y, c, W_joint, one.phi_rad + step)
+
+
+def test_information_of_small_covariances_is_the_inverse():
+    """The per-frame path (Python floats, up to 4 points) equals numpy's inverse, and fails
+    the same way on a covariance that is not finite or not positive definite."""
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 4, 5):
+        cov = np.stack([_random_covariance(rng, False) for _ in range(n)])
+        expected = np.linalg.inv(cov)
+        np.testing.assert_allclose(information_from_covariance(cov), expected, rtol=1e-10)
+        np.testing.assert_allclose(information_from_covariance(cov[0]), expected[0], rtol=1e-10)
+    for bad, message in (
+        (np.diag([1.0, -1.0, 1.0]), "not positive definite"),
+        (np.diag([1.0, np.nan, 1.0]), "non-finite"),
+        (np.stack([np.eye(3), np.diag([1.0, 1.0, 0.0])]), "not positive definite"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            information_from_covariance(bad)

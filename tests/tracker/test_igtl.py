@@ -11,7 +11,8 @@ from models.rotations import rot_z
 from replay.simulation.sources import SimulatedSource, simulated_session
 from tracker.estimators import make_estimator
 from tracker.io.igtl import IgtlSink, bending_plane_transform_w, tip_transform_w
-from tracker.live.loop import MemorySink, run_live
+from tracker.live.loop import run_live
+from tracker.live.sinks import MemorySink
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag
 

@@ -14,12 +14,18 @@ import textwrap
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
+from models.catheter import default_catheter
 from models.imaging import isotropic_covariance
+from models.model_file import DEFAULT_MODEL_PATH
+from models.pose import Pose
+from models.rig_file import rig_toml
 from models.rotations import wrap_angle
-from replay.simulation.simulator import point_arclengths
+from replay.simulation.render import Renderer, default_render_rig
+from replay.simulation.simulator import default_scene, point_arclengths
 from replay.simulation.sources import (
     RenderedSource,
     SimulatedSource,
@@ -27,26 +33,22 @@ from replay.simulation.sources import (
     simulated_session,
 )
 from tracker.estimators import make_estimator
-from tracker.io.udp import (
-    EstimateSender,
-    JointReceiver,
-    JointStreamer,
-    MarkerReceiver,
-    decode_estimate,
-    encode_joints,
-    encode_markers,
+from tracker.io.datagrams import SegmentedMarkers, decode_estimate, encode_joints, encode_markers
+from tracker.io.recording import RecordingWriter, open_recording
+from tracker.io.udp import EstimateSender, JointReceiver, JointStreamer, MarkerReceiver
+from tracker.live.loop import LiveTracker, run_live
+from tracker.live.session import LiveSession, SessionSettings
+from tracker.live.sinks import CSV_COLUMNS, CsvSink, LiveStatus, MemorySink, RecordingSink
+from tracker.live.sources import (
+    ImageSet,
+    PacedSource,
+    RecordingSource,
+    UdpMarkerSource,
+    VideoSource,
 )
-from tracker.live.loop import (
-    CSV_COLUMNS,
-    CsvSink,
-    LiveStatus,
-    LiveTracker,
-    MemorySink,
-    run_live,
-)
-from tracker.live.sources import ImagePair, PacedSource, UdpMarkerSource, VideoSource
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag
+from tracker.vision.pair import PairSegmenter
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -188,11 +190,9 @@ class LiveMarkers:
             points_w = points_b @ scene.R_w_b.T + scene.o_b_w_mm
             uv = [
                 v.project(points_w) + self.noise * self.rng.standard_normal((arclengths.size, 2))
-                for v in (scene.rig.front, scene.rig.side)
+                for v in (scene.rig.views[0], scene.rig.views[1])
             ]
-            from tracker.io.udp import SegmentedMarkers
-
-            yield SegmentedMarkers(t, uv[0], uv[1], cov, cov)
+            yield SegmentedMarkers(t, (uv[0], uv[1]), (cov, cov))
 
 
 def test_real_time_controller_at_1khz_and_ukf(noisy_session):
@@ -288,7 +288,7 @@ def test_frames_that_stop_end_the_loop_on_the_idle_timeout(noisy_session):
     receiver = MarkerReceiver(port=0, n_points=1 + len(scene.catheter.marker_arclengths_mm))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as segmenter:
         for k, frame in enumerate(noisy_session.frames[:3]):
-            data = encode_markers(k, frame.time_s, frame.uv_front, frame.uv_side, 0.3, 0.3)
+            data = encode_markers(k, frame.time_s, frame.uv, (0.3, 0.3))
             segmenter.sendto(data, receiver.address)
         segmenter.sendto(b"junk" * 40, receiver.address)
         memory = MemorySink()
@@ -314,19 +314,17 @@ def test_frames_that_stop_end_the_loop_on_the_idle_timeout(noisy_session):
 
 def test_a_camera_that_cannot_be_opened_is_one_clear_error(tmp_path):
     with pytest.raises(OSError, match="cannot open the front video '.*front.avi': no such file"):
-        VideoSource(str(tmp_path / "front.avi"), str(tmp_path / "side.avi"))
+        VideoSource([str(tmp_path / "front.avi"), str(tmp_path / "side.avi")])
     video = write_video(tmp_path / "ok.avi", [np.zeros((48, 64), np.uint8)] * 2)
     with pytest.raises(OSError, match="cannot open the side camera 97"):
-        VideoSource(str(video), 97)  # no such device
+        VideoSource([str(video), 97])  # no such device
     not_video = tmp_path / "notes.avi"
     not_video.write_text("not a video")
     with pytest.raises(OSError, match="cannot open the side video"):
-        VideoSource(str(video), str(not_video))
+        VideoSource([str(video), str(not_video)])
 
 
 def write_video(path, images, fps=20.0):
-    import cv2
-
     h, w = images[0].shape
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), fps, (w, h), False)
     assert writer.isOpened()
@@ -339,11 +337,6 @@ def write_video(path, images, fps=20.0):
 @pytest.fixture(scope="module")
 def rendered():
     """Rendered images of a short session, the renderer and its segmenter."""
-    from models.catheter import default_catheter
-    from replay.simulation.render import Renderer, default_render_rig
-    from replay.simulation.simulator import default_scene
-    from tracker.vision.segmentation import PairSegmenter
-
     catheter = default_catheter()
     scene = default_scene(catheter, default_render_rig())
     session = simulated_session(1.0, 10.0, noise=0.0, catheter=catheter, rig=scene.rig)
@@ -380,13 +373,13 @@ def test_video_files_through_segmentation_track_the_truth(rendered, tmp_path, co
     pairs = [renderer.render(f.q, f.delta_L_true_rad, rng).images for f in session.frames]
     front = write_video(tmp_path / "front.avi", [p[0] for p in pairs], fps=10.0)
     side = write_video(tmp_path / "side.avi", [p[1] for p in pairs], fps=10.0)
-    with VideoSource(str(front), str(side)) as video:
+    with VideoSource([str(front), str(side)]) as video:
         items = list(video)
-    assert len(items) == len(pairs) and isinstance(items[0], ImagePair)
+    assert len(items) == len(pairs) and isinstance(items[0], ImageSet)
     assert not video.time_is_monotonic
-    np.testing.assert_array_equal(items[3].image_side, pairs[3][1])  # lossless, grayscale
+    np.testing.assert_array_equal(items[3].images[1], pairs[3][1])  # lossless, grayscale
     np.testing.assert_allclose([i.time_s for i in items], [f.time_s for f in session.frames])
-    with VideoSource(str(front), str(side)) as video, JointReceiver(
+    with VideoSource([str(front), str(side)]) as video, JointReceiver(
         port=0, clock="sender"
     ) as joints:
         controller.send_joints_until(1.0, joints.address)  # joints on the video's time base
@@ -409,7 +402,7 @@ def test_video_files_through_segmentation_track_the_truth(rendered, tmp_path, co
 
 def test_images_without_a_segmenter_are_a_clear_error(noisy_session):
     memory = MemorySink()
-    images = [ImagePair(0.0, np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8))]
+    images = [ImageSet(0.0, (np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8)))]
     with pytest.raises(ValueError, match="no segmenter"):
         run_live(
             images,
@@ -430,7 +423,7 @@ class BrokenSink:
         self.calls = 0
         self.closed = False
 
-    def handle(self, frame, observation, estimate, latency_s):
+    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE):
         self.calls += 1
         if self.calls == 3:
             raise ConnectionResetError("viewer not running")
@@ -491,7 +484,7 @@ def test_an_estimator_error_gives_an_invalid_flagged_estimate(noisy_session):
 
 def test_unusable_frames_are_dropped_and_reported_once(noisy_session):
     bad = [
-        dataclasses.replace(f, uv_front=f.uv_front[:-1]) for f in noisy_session.frames[:3]
+        dataclasses.replace(f, uv=(f.uv[0][:-1], f.uv[1])) for f in noisy_session.frames[:3]
     ]
     reports = []
     summary = run_live(
@@ -502,7 +495,7 @@ def test_unusable_frames_are_dropped_and_reported_once(noisy_session):
         handle_signals=False,
     )
     assert summary.frames_rejected == 3 and summary.frames_processed == 3
-    assert len(reports) == 1 and "uv_front" in reports[0]
+    assert len(reports) == 1 and "uv[front]" in reports[0]
 
 
 def test_csv_sink_and_max_frames(noisy_session, tmp_path):
@@ -556,18 +549,13 @@ def test_loop_object_can_be_stepped_by_hand(noisy_session):
 # ----------------------------------------------------------------- colleagues' sinks
 def test_a_recorded_live_session_replays_to_the_same_estimates(exact_session, controller, tmp_path):
     """RecordingSink writes the raw joints and the frames; RecordingSource plays them back."""
-    from models.model_file import DEFAULT_MODEL_PATH
-    from tracker.io.recording import RecordingWriter, rig_toml
-    from tracker.live.loop import RecordingSink
-    from tracker.live.sources import RecordingSource
-
     session = exact_session
     scene = session.scene
     path = tmp_path / "live.mcap"
     writer = RecordingWriter(
         path,
         model_toml=DEFAULT_MODEL_PATH.read_text(),
-        rig_toml=rig_toml(scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        rig_toml=rig_toml(scene.rig, Pose(scene.R_w_b, scene.o_b_w_mm)),
         point_unit="mm",
     )
     frames = session.frames[:40]
@@ -605,21 +593,47 @@ def test_a_recorded_live_session_replays_to_the_same_estimates(exact_session, co
     )
 
 
-def test_rerun_viewer_as_a_live_sink_writes_an_rrd(noisy_session, tmp_path):
-    from tracker.live.loop import RerunLiveSink
-    from tracker.viewer.sink import RerunSink, file_stream
-
-    path = tmp_path / "live.rrd"
-    viewer = RerunSink(file_stream(path))
-    summary = run_live(
-        noisy_session.frames[:10],
-        reconstructor_of(noisy_session),
-        make_estimator("ukf", noisy_session.scene.catheter),
-        [RerunLiveSink(viewer, noisy_session.scene, "ukf")],
-        handle_signals=False,
+# ------------------------------------------------------------------------- the session
+def test_a_session_wires_the_joints_and_every_output(exact_session, controller, tmp_path):
+    """LiveSession: joints over UDP in; estimate datagrams, a recording and a CSV file out."""
+    frames = exact_session.frames[:40]
+    settings = SessionSettings(
+        estimator="tip-position",
+        joints_port=0,
+        joint_clock="sender",
+        estimate_to=controller.address,
+        record_path=tmp_path / "live.mcap",
+        csv_path=tmp_path / "live.csv",
     )
-    assert summary.frames_processed == 10 and not summary.sink_failures
-    assert path.stat().st_size > 0
+    model_toml = DEFAULT_MODEL_PATH.read_text()
+    with LiveSession(settings, exact_session.scene, model_toml=model_toml) as live:
+        joints = live.joints
+        assert live.inputs == [f"joints on udp://{LOOPBACK}:{joints.address[1]} (sender clock)"]
+        assert live.outputs == [
+            f"estimates to udp://{LOOPBACK}:{controller.address[1]}",
+            f"recording {tmp_path / 'live.mcap'}",
+            f"CSV {tmp_path / 'live.csv'}",
+        ]
+        summary = live.run(controlled(frames, controller, joints, faults=False))
+    controller.receive_estimates()
+    n = len(frames)
+    assert summary.frames_processed == summary.frames_valid == n
+    assert [m.sequence for m in controller.estimates] == list(range(n))
+    assert len((tmp_path / "live.csv").read_text().splitlines()) == n + 1
+    with open_recording(tmp_path / "live.mcap") as recording:
+        assert len(recording) == n and len(recording.estimates["tip-position"]) == n
+
+
+def test_a_session_that_cannot_be_set_up_closes_what_it_opened(exact_session, tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((LOOPBACK, 0))
+        port = s.getsockname()[1]
+    settings = SessionSettings(
+        joints_port=port, estimate_to=None, record_path=tmp_path / "no" / "such" / "dir.mcap"
+    )
+    with pytest.raises(OSError):
+        LiveSession(settings, exact_session.scene, model_toml="")
+    JointReceiver(LOOPBACK, port).close()  # the joint port was released
 
 
 # ------------------------------------------------------------------------------ Ctrl-C
@@ -641,7 +655,7 @@ SIGINT_SCRIPT = textwrap.dedent(
             self.file = open(path, "w")
             self.rows = 0
 
-        def handle(self, frame, observation, estimate, latency_s):
+        def handle(self, frame, observation, estimate, latency_s, status=0):
             self.file.write(f"{frame.time_s!r},{estimate.delta_L_rad!r}\\n")
             self.rows += 1
             if self.rows == 3:

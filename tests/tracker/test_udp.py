@@ -9,18 +9,14 @@ import struct
 import numpy as np
 import pytest
 
-from tracker.io.udp import (
+from tracker.io.datagrams import (
     ESTIMATE_STRUCT,
     JOINT_MAGIC,
     JOINT_STRUCT,
     MARKER_MAGIC,
     DatagramError,
-    EstimateSender,
     JointFlags,
     JointPacket,
-    JointReceiver,
-    JointStatus,
-    MarkerReceiver,
     SegmentedMarkers,
     decode_estimate,
     decode_joints,
@@ -31,6 +27,8 @@ from tracker.io.udp import (
     encode_segmented,
     marker_datagram_size,
 )
+from tracker.io.joints import JointStatus
+from tracker.io.udp import EstimateSender, JointReceiver, MarkerReceiver
 from tracker.types import Estimate, Flag
 
 LOOPBACK = "127.0.0.1"
@@ -113,18 +111,18 @@ def test_estimate_datagram_round_trip():
 def test_marker_datagram_round_trip_with_missing_points():
     uv_f = np.array([[1.0, 2.0], [np.nan, np.nan], [5.0, 6.0]])
     uv_s = np.array([[7.0, 8.0], [9.0, 10.0], [11.0, 12.0]])
-    data = encode_markers(4, 0.5, uv_f, uv_s, [0.5, 0.5, 2.0], 1.5)
+    data = encode_markers(4, 0.5, (uv_f, uv_s), ([0.5, 0.5, 2.0], 1.5))
     assert len(data) == marker_datagram_size(3) == 24 + 48 * 3
     assert struct.unpack_from("<I", data)[0] == MARKER_MAGIC
     markers = decode_markers(data, n_points=3)
     assert markers.sequence == 4 and markers.time_s == 0.5
-    np.testing.assert_array_equal(markers.uv_front, uv_f)
-    np.testing.assert_array_equal(markers.uv_side, uv_s)
-    np.testing.assert_allclose(markers.cov_front[2], 4.0 * np.eye(2))
-    np.testing.assert_allclose(markers.cov_side[0], 2.25 * np.eye(2))
-    assert np.all(np.isnan(markers.cov_front[1]))
+    np.testing.assert_array_equal(markers.uv[0], uv_f)
+    np.testing.assert_array_equal(markers.uv[1], uv_s)
+    np.testing.assert_allclose(markers.cov[0][2], 4.0 * np.eye(2))
+    np.testing.assert_allclose(markers.cov[1][0], 2.25 * np.eye(2))
+    assert np.all(np.isnan(markers.cov[0][1]))
     again = decode_markers(encode_segmented(markers))
-    np.testing.assert_allclose(again.cov_front[[0, 2]], markers.cov_front[[0, 2]])
+    np.testing.assert_allclose(again.cov[0][[0, 2]], markers.cov[0][[0, 2]])
 
 
 @pytest.mark.parametrize(
@@ -139,14 +137,26 @@ def test_marker_datagram_round_trip_with_missing_points():
     ],
 )
 def test_marker_decoder_rejects_with_a_reason(mutate, reason):
-    data = encode_markers(1, 0.0, np.ones((3, 2)), np.ones((3, 2)), 1.0, 1.0)
+    data = encode_markers(1, 0.0, (np.ones((3, 2)), np.ones((3, 2))), (1.0, 1.0))
     with pytest.raises(DatagramError) as info:
         decode_markers(mutate(data))
     assert info.value.reason == reason
 
 
+def test_marker_datagram_with_three_views():
+    uv = [np.full((3, 2), float(k)) for k in range(3)]
+    data = encode_markers(7, 1.25, uv, (0.5, 1.0, 2.0))
+    assert len(data) == marker_datagram_size(3, 3) == 24 + 72 * 3
+    markers = decode_markers(data, n_points=3, n_views=3)
+    assert len(markers.uv) == 3
+    np.testing.assert_array_equal(markers.uv[2], uv[2])
+    np.testing.assert_allclose(markers.cov[2][0], 4.0 * np.eye(2))
+    with pytest.raises(DatagramError, match="the rig has 2"):
+        decode_markers(data, n_views=2)
+
+
 def test_marker_decoder_checks_the_point_count():
-    data = encode_markers(1, 0.0, np.ones((2, 2)), np.ones((2, 2)), 1.0, 1.0)
+    data = encode_markers(1, 0.0, (np.ones((2, 2)), np.ones((2, 2))), (1.0, 1.0))
     with pytest.raises(DatagramError, match="catheter has 3"):
         decode_markers(data, n_points=3)
 
@@ -290,15 +300,15 @@ def test_marker_receiver_counts_bad_datagrams_and_joins_joints(sender):
             t = k * 1e-3
             sender.sendto(encode_joints(k, t, *ramp_q(t)), joints.address)
         uv = np.arange(6.0).reshape(3, 2)
-        sender.sendto(encode_markers(0, 0.05, uv, uv + 1, 0.5, 0.5), markers.address)
+        sender.sendto(encode_markers(0, 0.05, (uv, uv + 1), (0.5, 0.5)), markers.address)
         sender.sendto(b"not a marker datagram" * 8, markers.address)
-        sender.sendto(encode_markers(1, 0.06, uv[:2], uv[:2], 0.5, 0.5), markers.address)
-        sender.sendto(encode_markers(2, 0.07, uv, uv, 0.5, 0.5), markers.address)
+        sender.sendto(encode_markers(1, 0.06, (uv[:2], uv[:2]), (0.5, 0.5)), markers.address)
+        sender.sendto(encode_markers(2, 0.07, (uv, uv), (0.5, 0.5)), markers.address)
         frames = list(markers.frames(joints, idle_timeout_s=0.2))
         assert [f.time_s for f in frames] == [0.05, 0.07]
         np.testing.assert_allclose(frames[0].q, ramp_q(0.05)[0], atol=1e-12)
-        np.testing.assert_array_equal(frames[0].uv_side, uv + 1)
-        np.testing.assert_allclose(frames[0].cov_front, np.tile(0.25 * np.eye(2), (3, 1, 1)))
+        np.testing.assert_array_equal(frames[0].uv[1], uv + 1)
+        np.testing.assert_allclose(frames[0].cov[0], np.tile(0.25 * np.eye(2), (3, 1, 1)))
         assert markers.counts.malformed == {"magic": 1, "points": 1}
         assert markers.counts.accepted == 2
 
@@ -306,6 +316,6 @@ def test_marker_receiver_counts_bad_datagrams_and_joins_joints(sender):
 def test_segmented_markers_become_a_frame():
     uv = np.zeros((3, 2))
     cov = np.tile(np.eye(2), (3, 1, 1))
-    frame = SegmentedMarkers(1.0, uv, uv, cov, cov).frame([0.0, 0.1, 0.2], None)
+    frame = SegmentedMarkers(1.0, (uv, uv), (cov, cov)).frame([0.0, 0.1, 0.2], None)
     assert frame.time_s == 1.0 and frame.q_dot is None
     np.testing.assert_array_equal(frame.q, [0.0, 0.1, 0.2])

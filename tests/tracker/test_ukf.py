@@ -524,7 +524,7 @@ def test_single_view_updates_reduce_the_std_and_converge(delta_2, rig_kind):
     estimates = [ukf.step(first)]
     assert estimates[0].valid
     for k in range(1, 61):
-        view = rig.front if k % 2 else rig.side
+        view = rig.views[0] if k % 2 else rig.views[1]
         q = BENT + np.array([0.02 * k, 0.0, 0.0])
         estimates.append(ukf.step(view_frame(catheter, view, q, truth, rng, k * DT_S, sigma)))
     stds = np.array([e.std_rad for e in estimates])
@@ -538,7 +538,7 @@ def test_single_view_updates_reduce_the_std_and_converge(delta_2, rig_kind):
 def test_a_single_view_does_not_initialise_the_filter():
     catheter = default_catheter()
     ukf = BendingPlaneUKF(catheter)
-    view = default_orthographic_rig().front
+    view = default_orthographic_rig().views[0]
     frame = view_frame(catheter, view, BENT, 0.5, np.random.default_rng(0), 0.0, sigma=0.5)
     estimate = ukf.step(frame)
     assert Flag.NOT_INITIALISED in estimate.flags and not estimate.valid
@@ -608,7 +608,6 @@ def test_persistent_model_mismatch_is_accepted_with_inflated_uncertainty():
     ``reacquire_after_rejections`` frames it restarts from the closed form with the std and the
     measurement noise inflated by the misfit, flags MODEL_MISMATCH, and stays consistent."""
     from models.imaging import default_orthographic_rig
-    from replay.evaluation import observations_from_frames
     from replay.simulation.simulator import NoiseSettings, default_scene, hold, simulate_frames
     from tracker.reconstruction import Reconstructor
 
@@ -620,7 +619,7 @@ def test_persistent_model_mismatch_is_accepted_with_inflated_uncertainty():
         np.random.default_rng(0), model_joint_offset=np.array([0.0, 0.0, 0.4]),
     )
     reconstructor = Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
-    observations = observations_from_frames(reconstructor, frames)
+    observations = reconstructor.observe_batch(frames)
     estimates = run(BendingPlaneUKF(catheter), observations)
     k = UKFSettings().reacquire_after_rejections
     assert all(not e.valid for e in estimates[: k - 1])

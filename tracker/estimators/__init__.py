@@ -1,4 +1,4 @@
-"""Estimators of delta_L: per-frame closed forms and baselines, and the UKF.
+"""Estimators of delta_L: per-frame closed forms and baselines, the UKF and the grid filter.
 
 Every estimator has ``step(observation) -> Estimate`` and ``reset()``; :func:`make_estimator`
 builds one by name. To add an estimator, write it in a module of this package and add its name
@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from models.catheter import Catheter
+from tracker.estimators.grid import DEFAULT_CELLS, GridFilter
 from tracker.estimators.per_frame import Estimator, PerFrameEstimator
 from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
 
@@ -22,11 +23,15 @@ PER_FRAME_NAMES = {
 
 def estimator_names() -> list[str]:
     """Every name :func:`make_estimator` accepts."""
-    return sorted(PER_FRAME_NAMES) + ["ukf", "ukf-position"]
+    return sorted(PER_FRAME_NAMES) + ["ukf", "ukf-position", "grid"]
 
 
 def make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
-    """Build an estimator by name (see :func:`estimator_names`)."""
+    """Build an estimator by name (see :func:`estimator_names`).
+
+    The filters take :class:`UKFSettings` fields as keyword settings; ``grid`` also takes
+    ``cells`` (default :data:`~tracker.estimators.grid.DEFAULT_CELLS`).
+    """
     if name in PER_FRAME_NAMES:
         if settings:
             raise ValueError(f"estimator {name!r} takes no settings, got {sorted(settings)}")
@@ -37,5 +42,8 @@ def make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
         if name == "ukf-position":
             ukf_settings = replace(ukf_settings, use_velocity=False)
         return BendingPlaneUKF(catheter, ukf_settings, name=name)
+    if name == "grid":
+        cells = settings.pop("cells", DEFAULT_CELLS)
+        return GridFilter(catheter, UKFSettings(**settings), cells=cells, name=name)
     raise ValueError(f"unknown estimator {name!r}; choose from {', '.join(estimator_names())}")
 

@@ -1,6 +1,6 @@
 """Per-frame bending-plane estimators of the paper and the interface every estimator shares.
 
-Each of the paper's three estimators (DESIGN.md section 5) exists two ways:
+Each of the paper's three estimators (docs/design.md section 5) exists two ways:
 
 - ``closed-form``: the exact global minimiser of the covariance-weighted problem
   (models.rotation_fit), with its standard deviation from the Fisher information;
@@ -9,6 +9,11 @@ Each of the paper's three estimators (DESIGN.md section 5) exists two ways:
 
 Every estimator, the UKF included, has ``name``, ``reset()`` and ``step(observation) ->
 Estimate``; :func:`make_estimator` builds any of them by name.
+
+The rotation problem of a data kind is built in one place: :func:`build_problem_batch` from
+arrays of complete frames (the sensitivity studies: all trials at once), which
+:func:`build_problem` also uses for one :class:`Observation`, after dropping what the frame
+lacks (the tip or some markers).
 """
 
 from __future__ import annotations
@@ -18,18 +23,19 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 
-from models.bounds import information_from_covariance
+from models.bounds import information_from_covariance, std_from_information
 from models.catheter import Catheter, ShapeVectors
-from models.rotation_fit import fit_rotation_z, rotation_fisher_information
+from models.rotation_fit import fit_rotation_z, is_per_vector, rotation_fisher_information
 from models.rotations import rotate_z, wrap_angle
 from tracker.types import Estimate, Flag, Observation
 
 Array = np.ndarray
 
 DATA_KINDS = ("tip", "body", "velocity")
+# Placeholders of a missing tip in the rows of Body Positions (dropped before the fit).
+_NAN_3, _EYE_3 = np.full(3, np.nan), np.eye(3)
 # Above this standard deviation (rad, ~57 degrees) a frame is reported as uninformative.
 UNINFORMATIVE_STD_RAD = 1.0
 
@@ -48,62 +54,156 @@ class Estimator(Protocol):
 
 @dataclass(frozen=True)
 class Problem:
-    """One frame's rotation problem: measured y = Rz(q_r + delta_L) c + noise."""
+    """Rotation problems: measured y = Rz(q_r + delta_L) c + noise, batch shape (...).
 
-    y: Array  # (n, 3)
-    c: Array  # (n, 3)
-    covariance: Array  # (3n, 3n)
-    q_r_rad: float
-    partial: bool
+    One frame has the batch shape ().
+    """
+
+    y: Array  # (..., n, 3)
+    c: Array  # (..., n, 3)
+    # Joint (..., 3n, 3n), or per row (..., n, 3, 3) when the rows are independent
+    # (models.rotation_fit.is_per_vector); batch axes broadcast against y's.
+    covariance: Array
+    q_r_rad: Array | float  # (...)
+    partial: bool = False  # some rows of the data kind were not measured
 
 
-def build_problem(
-    kind: str, observation: Observation, shape: ShapeVectors
-) -> Problem | None:
-    """Collect the measured and model vectors of one data kind, or None if nothing usable."""
+def _check_kind(kind: str) -> None:
+    if kind not in DATA_KINDS:
+        raise ValueError(f"unknown data kind {kind!r}; expected one of {DATA_KINDS}")
+
+
+def model_vectors(kind: str, shape: ShapeVectors) -> Array:
+    """The model vectors c (..., n, 3) of every row of a data kind.
+
+    Tip Position: the tip; Body Positions: the tip and every backbone marker, in a frame's row
+    order ``[tip, marker_0, ...]``; Tip Velocity: the tip velocity (``shape`` made with joint
+    rates).
+    """
+    _check_kind(kind)
+    if kind == "tip":
+        return shape.c_tip_mm[..., None, :]
+    if kind == "body":
+        return np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
+    if shape.u_tip_mm_s is None:
+        raise ValueError("Tip Velocity needs shape vectors made with joint rates")
+    return shape.u_tip_mm_s[..., None, :]
+
+
+def build_problem_batch(
+    kind: str,
+    shape: ShapeVectors,
+    points_b_mm: Array | None = None,
+    points_cov_b: Array | None = None,
+    velocity_b_mm_s: Array | None = None,
+    velocity_cov_b: Array | None = None,
+) -> Problem:
+    """The rotation problems of one data kind for frames with every point measured.
+
+    Parameters
+    ----------
+    kind : {"tip", "body", "velocity"}
+    shape : ShapeVectors
+        Shape vectors at the frames' joint values, batch shape broadcasting against theirs.
+    points_b_mm : array, shape (..., P, 3)
+        Measured tip and markers in {B}, rows ``[tip, marker_0, ...]`` (Tip Position uses the
+        first row only), mm.
+    points_cov_b : array, shape (..., P, 3, 3) or (..., 3P, 3P)
+        Their covariance per point (independent points) or joint, mm^2.
+    velocity_b_mm_s, velocity_cov_b : arrays, shapes (..., 3), (..., 3, 3)
+        Measured tip velocity and its covariance (Tip Velocity only), mm/s, mm^2/s^2.
+    """
+    c = model_vectors(kind, shape)
+    if kind == "velocity":
+        y = np.asarray(velocity_b_mm_s, dtype=float)[..., None, :]
+        covariance = np.asarray(velocity_cov_b, dtype=float)
+    else:
+        y = np.asarray(points_b_mm, dtype=float)
+        covariance = np.asarray(points_cov_b, dtype=float)
+        if kind == "tip":
+            per_point = covariance.ndim > 2 and covariance.shape[-3:] == (y.shape[-2], 3, 3)
+            y = y[..., :1, :]
+            covariance = covariance[..., 0, :, :] if per_point else covariance[..., :3, :3]
+    if c.shape != y.shape:
+        c = np.broadcast_to(c, np.broadcast_shapes(c.shape, y.shape))
+    return Problem(y=y, c=c, covariance=covariance, q_r_rad=shape.q_r_rad)
+
+
+def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Problem | None:
+    """The rotation problem of one frame, or None if the frame has nothing usable for it.
+
+    Body Positions uses whichever rows of ``[tip, marker_0, ...]`` were measured and says so
+    with ``partial``; Tip Velocity needs the velocity and the joint rates.
+    """
+    _check_kind(kind)
     if kind == "tip":
         if not observation.has_tip():
             return None
-        y = np.asarray(observation.tip_b_mm, dtype=float)[None, :]
-        c = shape.c_tip_mm[None, :]
-        cov = np.asarray(observation.tip_cov_b, dtype=float)
-        partial = False
-    elif kind == "body":
-        # Body Positions: the tip and every segmented backbone marker.
-        mask = observation.marker_mask()
-        n_markers = shape.c_markers_mm.shape[0]
-        if mask.size and mask.size != n_markers:
-            raise ValueError(
-                f"observation has {mask.size} markers, the catheter model has {n_markers}"
-            )
-        has_tip = observation.has_tip()
-        if not mask.any() and not has_tip:
+        tip = np.asarray(observation.tip_b_mm, dtype=float)[None]
+        shape = catheter.shape_vectors(observation.q)
+        return build_problem_batch(kind, shape, tip, observation.tip_cov_b)
+    if kind == "velocity":
+        if not observation.has_velocity():
             return None
-        ys, cs, blocks = [], [], []
-        if has_tip:
-            ys.append(np.asarray(observation.tip_b_mm, dtype=float)[None, :])
-            cs.append(shape.c_tip_mm[None, :])
-            blocks.append(np.asarray(observation.tip_cov_b, dtype=float))
-        if mask.any():
-            idx = np.repeat(mask, 3)
-            ys.append(np.asarray(observation.markers_b_mm, dtype=float)[mask])
-            cs.append(shape.c_markers_mm[mask])
-            blocks.append(observation.markers_joint_covariance()[np.ix_(idx, idx)])
-        y, c = np.concatenate(ys), np.concatenate(cs)
-        cov = block_diag(*blocks)
-        if not np.all(np.isfinite(cov)):
-            return None
-        partial = not (has_tip and mask.size and mask.all())
-    elif kind == "velocity":
-        if not observation.has_velocity() or shape.u_tip_mm_s is None:
-            return None
-        y = np.asarray(observation.velocity_b_mm_s, dtype=float)[None, :]
-        c = shape.u_tip_mm_s[None, :]
-        cov = np.asarray(observation.velocity_cov_b, dtype=float)
-        partial = False
+        return build_problem_batch(
+            kind,
+            catheter.shape_vectors(observation.q, observation.q_dot),
+            velocity_b_mm_s=observation.velocity_b_mm_s,
+            velocity_cov_b=observation.velocity_cov_b,
+        )
+    n_markers = len(catheter.marker_arclengths_mm)
+    mask = observation.marker_mask()
+    if mask.size and mask.size != n_markers:
+        raise ValueError(f"observation has {mask.size} markers, the catheter model has {n_markers}")
+    has_tip, present = observation.has_tip(), mask.tolist()
+    if not has_tip and not any(present):
+        return None
+    # Every row [tip, marker_0, ...], with placeholders (NaN, identity) for what is missing.
+    if mask.size:
+        markers = np.asarray(observation.markers_b_mm, dtype=float)
+        markers_cov = np.asarray(observation.markers_cov_b, dtype=float)
     else:
-        raise ValueError(f"unknown data kind {kind!r}; expected one of {DATA_KINDS}")
-    return Problem(y=y, c=c, covariance=cov, q_r_rad=float(shape.q_r_rad), partial=partial)
+        mask = np.zeros(n_markers, dtype=bool)
+        markers = np.full((n_markers, 3), np.nan)
+        markers_cov = np.broadcast_to(np.eye(3), (n_markers, 3, 3))
+    tip, tip_cov = (observation.tip_b_mm, observation.tip_cov_b) if has_tip else (_NAN_3, _EYE_3)
+    points = np.concatenate((np.asarray(tip, dtype=float)[None], markers))
+    if markers_cov.shape == (n_markers, 3, 3):
+        covariance = np.concatenate((np.asarray(tip_cov, dtype=float)[None], markers_cov))
+    else:
+        covariance = np.zeros((3 + 3 * n_markers,) * 2)
+        covariance[:3, :3] = tip_cov
+        covariance[3:, 3:] = observation.markers_joint_covariance()
+    problem = build_problem_batch(kind, catheter.shape_vectors(observation.q), points, covariance)
+    if not (has_tip and present and all(present)):
+        rows = np.concatenate(([has_tip], mask))
+        if covariance.ndim == 3:
+            # One row left: its own covariance is the joint one (see is_per_vector).
+            covariance = covariance[rows] if rows.sum() > 1 else covariance[rows][0]
+        else:
+            values = np.repeat(rows, 3)
+            covariance = covariance[np.ix_(values, values)]
+        problem = Problem(problem.y[rows], problem.c[rows], covariance, problem.q_r_rad, True)
+    if not np.isfinite(problem.covariance).all():
+        return None
+    return problem
+
+
+def closed_form_batch(problem: Problem) -> tuple[Array, Array]:
+    """Closed-form delta_L and its Fisher standard deviation for a batch of problems.
+
+    Returns
+    -------
+    delta_L_rad, std_rad : arrays, shape (...)
+        ``std_rad`` is inf where the data carry no information on the angle.
+    """
+    W = information_from_covariance(problem.covariance)
+    if is_per_vector(W, problem.c.shape[-2]):
+        W = np.broadcast_to(W, problem.c.shape + (3,))
+    else:
+        W = np.broadcast_to(W, problem.c.shape[:-2] + W.shape[-2:])
+    fit = fit_rotation_z(problem.y, problem.c, W)
+    return wrap_angle(fit.phi_rad - problem.q_r_rad), std_from_information(fit.fisher_information)
 
 
 def _invalid(observation: Observation, flags: Flag) -> Estimate:
@@ -114,10 +214,6 @@ def _invalid(observation: Observation, flags: Flag) -> Estimate:
         q_r_rad=float(observation.q[0]),
         flags=flags | Flag.NO_MEASUREMENT,
     )
-
-
-def _std_flags(std: float) -> Flag:
-    return Flag.UNINFORMATIVE if not std < UNINFORMATIVE_STD_RAD else Flag.NONE
 
 
 class PerFrameEstimator:
@@ -134,8 +230,7 @@ class PerFrameEstimator:
     NAMES = {"tip": "tip-position", "body": "body-positions", "velocity": "tip-velocity"}
 
     def __init__(self, catheter: Catheter, kind: str, solver: str = "closed-form") -> None:
-        if kind not in DATA_KINDS:
-            raise ValueError(f"unknown data kind {kind!r}; expected one of {DATA_KINDS}")
+        _check_kind(kind)
         if solver not in ("closed-form", "least-squares"):
             raise ValueError(f"unknown solver {solver!r}; use 'closed-form' or 'least-squares'")
         self.catheter = catheter
@@ -147,30 +242,30 @@ class PerFrameEstimator:
         """Per-frame estimators keep no state."""
 
     def step(self, observation: Observation) -> Estimate:
-        use_rates = self.kind == "velocity" and observation.has_velocity()
-        q_dot = observation.q_dot if use_rates else None
-        shape = self.catheter.shape_vectors(observation.q, q_dot)
-        problem = build_problem(self.kind, observation, shape)
+        problem = build_problem(self.kind, observation, self.catheter)
         if problem is None:
             return _invalid(observation, Flag.NONE)
-        W = information_from_covariance(problem.covariance)
         flags = Flag.PARTIAL if problem.partial else Flag.NONE
+        W = information_from_covariance(problem.covariance)
         if self.solver == "closed-form":
             fit = fit_rotation_z(problem.y, problem.c, W)
-            phi = float(fit.phi_rad)
-            info = float(fit.fisher_information)
+            phi, info = float(fit.phi_rad), float(fit.fisher_information)
+            radius = float(fit.informative_radius_mm)
         else:
             phi, converged = self._least_squares(observation, problem)
-            flags |= Flag.NONE if converged else Flag.NOT_CONVERGED
+            if not converged:
+                flags |= Flag.NOT_CONVERGED
             info = float(rotation_fisher_information(problem.c, W, phi))
-        std = 1.0 / np.sqrt(info) if info > 0 else float("inf")
-        radius = float(np.sqrt(np.sum(problem.c[:, :2] ** 2)))
+            radius = float(np.sqrt(np.sum(problem.c[:, :2] ** 2)))
+        std = std_from_information(info)
+        if not std < UNINFORMATIVE_STD_RAD:
+            flags |= Flag.UNINFORMATIVE
         return Estimate(
             time_s=observation.time_s,
             delta_L_rad=wrap_angle(phi - problem.q_r_rad),
-            std_rad=float(std),
-            q_r_rad=problem.q_r_rad,
-            flags=flags | _std_flags(std),
+            std_rad=std,
+            q_r_rad=float(problem.q_r_rad),
+            flags=flags,
             informative_radius_mm=radius,
         )
 
@@ -178,7 +273,7 @@ class PerFrameEstimator:
         """The paper's problem: unweighted residuals of the full model, delta_L_0 = 0."""
         residual = self._residual_function(observation, problem)
         result = least_squares(residual, x0=np.zeros(1))
-        return float(result.x[0]) + problem.q_r_rad, bool(result.status > 0)
+        return float(result.x[0]) + float(problem.q_r_rad), bool(result.status > 0)
 
     def _residual_function(self, observation: Observation, problem: Problem) -> Callable:
         cat, q = self.catheter, np.asarray(observation.q, dtype=float)
@@ -195,32 +290,6 @@ class PerFrameEstimator:
         return lambda d: y[0] - cat.tip_twist(q, q_dot, d[0])[:3]
 
 
-def closed_form_batch(
-    c: Array, y: Array, covariance: Array, q_r_rad: Array
-) -> tuple[Array, Array]:
-    """Closed-form delta_L and its Fisher standard deviation for a batch of frames.
-
-    Parameters
-    ----------
-    c, y : array, shape (B, n, 3)
-        Model and measured vectors in {B}.
-    covariance : array, shape (B, 3n, 3n) or (3n, 3n)
-    q_r_rad : array, shape (B,)
-    """
-    W = information_from_covariance(covariance)
-    W = np.broadcast_to(W, c.shape[:-2] + W.shape[-2:])
-    fit = fit_rotation_z(y, c, W)
-    with np.errstate(divide="ignore"):
-        std = np.where(fit.fisher_information > 0, 1 / np.sqrt(fit.fisher_information), np.inf)
-    return wrap_angle(fit.phi_rad - q_r_rad), std
-
-
 def predicted_measurement(c: Array, q_r_rad: Array, delta_L_rad: Array) -> Array:
     """Rz(q_r + delta_L) c for vectors c (..., 3)."""
     return rotate_z(c, np.asarray(q_r_rad) + np.asarray(delta_L_rad))
-
-
-
-
-
-

@@ -225,7 +225,9 @@ class IgtlSink:
         T_plane = bending_plane_transform_w(q_r + delta_L_rad, self.R_w_b, self.o_b_w_mm)
         return T_tip, T_plane
 
-    def handle(self, frame, observation, estimate: Estimate, latency_s: float) -> None:
+    def handle(
+        self, frame, observation, estimate: Estimate, latency_s: float, status: int = 0
+    ) -> None:
         server = self._server
         if server is None:
             return

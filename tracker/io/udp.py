@@ -1,31 +1,23 @@
-"""Fixed-layout UDP datagrams of the live loop (DESIGN.md section 7; byte tables in docs/live.md).
+"""UDP sockets of the live loop: joint values and segmented markers in, estimates out.
 
-Three little-endian datagrams, each with the same 16-byte header
-``magic u32, version u16, flags u16, sequence u32, reserved u32`` (the estimate datagram
-keeps its 32 flag bits in the last word, the marker datagram its point count):
+docs/design.md section 7; the datagrams themselves (layouts, encoders, decoders) are in
+:mod:`tracker.io.datagrams`, the byte tables in docs/live.md.
 
-- joint values from the robot controller (what a Simulink Real-Time / xPC target sends with a
-  Byte Packing block followed by UDP Send): :func:`encode_joints`, :func:`decode_joints`,
-  :class:`JointReceiver`;
-- the estimate back to the controller: :func:`encode_estimate`, :func:`decode_estimate`,
-  :class:`EstimateSender`;
-- points already segmented by an external segmenter: :func:`encode_markers`,
-  :func:`decode_markers`, :class:`MarkerReceiver`.
+- :class:`JointReceiver`: joint datagrams from the robot controller, kept as a bounded
+  history and interpolated to any image time (:class:`tracker.io.joints.JointHistory`);
+- :class:`EstimateSender`: one estimate datagram per frame back to the controller;
+- :class:`MarkerReceiver`: points already segmented by an external segmenter;
+- :class:`JointStreamer` plays the controller (simulations, demos, tests).
 
-:class:`JointStreamer` plays the controller (simulations, demos, tests).
-
-Every double starts at a multiple of 8 bytes. Decoders validate the size, magic, version and
-values and raise :class:`DatagramError`, whose ``reason`` is what the receivers count.
-Listeners bind to 127.0.0.1 unless told otherwise.
+Receivers drop and count malformed datagrams by the ``reason`` of their
+:class:`~tracker.io.datagrams.DatagramError`. Listeners bind to 127.0.0.1 unless told
+otherwise.
 """
 
 from __future__ import annotations
 
-import enum
-import math
 import select
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -33,6 +25,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tracker.io.datagrams import (
+    SEQUENCE_MODULUS,
+    DatagramError,
+    JointFlags,
+    JointPacket,
+    SegmentedMarkers,
+    decode_joints,
+    decode_markers,
+    encode_estimate,
+    encode_joints,
+)
+from tracker.io.joints import RATE_WINDOW_S, JointHistory, JointSample
 from tracker.types import Estimate, Frame
 
 Array = np.ndarray
@@ -44,137 +48,7 @@ DEFAULT_ESTIMATE_PORT = 25001
 """Port estimate datagrams are sent to (on the controller)."""
 DEFAULT_MARKER_PORT = 25002
 """Port the loop listens on for segmented-marker datagrams."""
-
-VERSION = 1
-
-
-def _magic(tag: bytes) -> int:
-    """The u32 whose little-endian bytes spell the 4-character tag."""
-    return int.from_bytes(tag, "little")
-
-
-JOINT_MAGIC = _magic(b"CTJV")  # 0x564A5443
-ESTIMATE_MAGIC = _magic(b"CTES")  # 0x53455443
-MARKER_MAGIC = _magic(b"CTMK")  # 0x4B4D5443
-
-_HEADER = struct.Struct("<IHHII")  # magic, version, flags, sequence, reserved
-JOINT_STRUCT = struct.Struct("<IHHII7d")
-"""Joint datagram: header, then time_s, q_r, q_p, q_d, q_r_dot, q_p_dot, q_d_dot (72 bytes)."""
-ESTIMATE_STRUCT = struct.Struct("<IHHII6d")
-"""Estimate datagram: header (the reserved word holds the flags), then time_s, delta_L_rad,
-std_rad, delta_1_rad, q_r_rad, latency_s (64 bytes)."""
-_MARKER_HEAD = struct.Struct("<IHHIHHd")  # header with n_points u16 + reserved u16, time_s
-MAX_MARKER_POINTS = 64
-
-_UINT32 = 1 << 32
 _RECEIVE_BUFFER_BYTES = 65536
-
-
-class JointFlags(enum.IntFlag):
-    """Flag bits of a joint datagram."""
-
-    NONE = 0
-    NO_RATES = 1  # the rate fields are not measured (may be NaN): rates come from the values
-
-
-class DatagramError(ValueError):
-    """A datagram that failed validation; ``reason`` is the counter it goes to."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
-def _check_header(data: bytes, magic: int, name: str, size: int | None) -> tuple[int, ...]:
-    if len(data) < _HEADER.size:
-        raise DatagramError("size", f"{name} datagram of {len(data)} bytes has no full header")
-    header = _HEADER.unpack_from(data)
-    if header[0] != magic:
-        raise DatagramError("magic", f"{name} datagram has magic 0x{header[0]:08X}")
-    if header[1] != VERSION:
-        raise DatagramError("version", f"{name} datagram has version {header[1]}, not {VERSION}")
-    if size is not None and len(data) != size:
-        raise DatagramError("size", f"{name} datagram has {len(data)} bytes, expected {size}")
-    return header
-
-
-# ------------------------------------------------------------------------------------ joints
-@dataclass(frozen=True)
-class JointPacket:
-    """One decoded joint datagram.
-
-    Parameters
-    ----------
-    sequence : int
-        Sender's counter (u32, wraps).
-    time_s : float
-        Sample time on the sender's clock, s.
-    q : array, shape (3,)
-        q_r [rad], q_p [mm], q_d [mm].
-    q_dot : array, shape (3,)
-        Rates (rad/s, mm/s, mm/s); NaN allowed only with ``JointFlags.NO_RATES``.
-    flags : JointFlags
-    """
-
-    sequence: int
-    time_s: float
-    q: Array
-    q_dot: Array
-    flags: JointFlags = JointFlags.NONE
-
-
-def encode_joints(
-    sequence: int,
-    time_s: float,
-    q: Array,
-    q_dot: Array | None = None,
-    flags: JointFlags = JointFlags.NONE,
-) -> bytes:
-    """The 72-byte joint datagram (q_dot None sends NaN rates with ``NO_RATES`` set)."""
-    if q_dot is None:
-        q_dot, flags = (math.nan,) * 3, flags | JointFlags.NO_RATES
-    q, q_dot = [float(x) for x in q], [float(x) for x in q_dot]
-    if len(q) != 3 or len(q_dot) != 3:
-        raise ValueError("joint values and rates must have 3 entries each (q_r, q_p, q_d)")
-    return JOINT_STRUCT.pack(
-        JOINT_MAGIC, VERSION, int(flags), sequence % _UINT32, 0, float(time_s), *q, *q_dot
-    )
-
-
-def decode_joints(data: bytes) -> JointPacket:
-    """Validate and decode a joint datagram, or raise :class:`DatagramError`."""
-    _check_header(data, JOINT_MAGIC, "joint", JOINT_STRUCT.size)
-    _, _, flags, sequence, _, time_s, *values = JOINT_STRUCT.unpack(data)
-    flags = JointFlags(flags & int(JointFlags.NO_RATES))
-    checked = [time_s, *values[:3]] if flags & JointFlags.NO_RATES else [time_s, *values]
-    if not all(map(math.isfinite, checked)):
-        raise DatagramError("non-finite", "joint datagram holds a NaN or infinite value")
-    return JointPacket(sequence, time_s, np.array(values[:3]), np.array(values[3:]), flags)
-
-
-class JointStatus(enum.Enum):
-    """How the joint values at an image time were obtained."""
-
-    OK = "ok"  # interpolated between two samples
-    HELD = "held"  # after the newest sample by less than the timeout: newest value held
-    CLAMPED = "clamped"  # before the oldest kept sample by less than the timeout
-    STALE = "stale"  # the stream has stopped (or the history does not reach back): clamped
-    NONE = "none"  # no sample received yet
-
-
-@dataclass(frozen=True)
-class JointSample:
-    """Joint values and rates at one time, and how they were obtained."""
-
-    time_s: float
-    q: Array
-    q_dot: Array
-    status: JointStatus
-    age_s: float  # time since the newest sample (negative when it is newer), s
-
-    @property
-    def usable(self) -> bool:
-        return self.status in (JointStatus.OK, JointStatus.HELD, JointStatus.CLAMPED)
 
 
 @dataclass
@@ -337,11 +211,11 @@ class JointReceiver:
         """Keep a decoded sample unless it is a duplicate or stale (both counted)."""
         newest = self._newest
         if newest is not None:
-            ahead = (packet.sequence - newest.sequence) % _UINT32
+            ahead = (packet.sequence - newest.sequence) % SEQUENCE_MODULUS
             if ahead == 0:
                 self.counts.duplicate += 1
                 return 0
-            behind = _UINT32 - ahead if ahead >= _UINT32 // 2 else 0
+            behind = SEQUENCE_MODULUS - ahead if ahead >= SEQUENCE_MODULUS // 2 else 0
             if behind > self.restart_gap:
                 self.counts.restarts += 1
                 self._start = self._end = 0
@@ -396,52 +270,19 @@ class JointReceiver:
         values = self._values[self._start + k : self._end]
         return times[k:], values[:, :3].copy(), values[:, 3:].copy()
 
-    def sample(self, time_s: float, rate_window_s: float = 0.02) -> JointSample:
+    def snapshot(self) -> JointHistory:
+        """The kept samples on this receiver's clock (rates NaN where not sent)."""
+        values = self._values[self._start : self._end]
+        return JointHistory(self.sample_times(), values[:, :3].copy(), values[:, 3:].copy())
+
+    def sample(self, time_s: float, rate_window_s: float = RATE_WINDOW_S) -> JointSample:
         """Joint values and rates at ``time_s`` (this receiver's clock), linearly interpolated.
 
         Rates come from the datagrams; where they were not sent (``NO_RATES``) they are the
-        slope of the values over ``rate_window_s`` around ``time_s``.
+        slope of the values over ``rate_window_s`` around ``time_s``
+        (:meth:`tracker.io.joints.JointHistory.interpolate`).
         """
-        n = self._end - self._start
-        if n == 0:
-            nan = np.full(3, np.nan)
-            return JointSample(float(time_s), nan, nan.copy(), JointStatus.NONE, math.inf)
-        times = self.sample_times()
-        values = self._values[self._start : self._end]
-        age = float(time_s - times[-1])
-        if time_s > times[-1] or n == 1:
-            row = values[-1].copy()
-            status = JointStatus.HELD if age <= self.stale_after_s else JointStatus.STALE
-            if time_s == times[-1]:
-                status = JointStatus.OK
-            elif time_s < times[-1]:
-                status = JointStatus.CLAMPED if -age <= self.stale_after_s else JointStatus.STALE
-        elif time_s < times[0]:
-            row = values[0].copy()
-            early = times[0] - time_s
-            status = JointStatus.CLAMPED if early <= self.stale_after_s else JointStatus.STALE
-        else:
-            # times[k - 1] <= time_s <= times[k]
-            k = min(int(np.searchsorted(times, time_s, side="right")), n - 1)
-            w = (time_s - times[k - 1]) / (times[k] - times[k - 1])
-            row = (1.0 - w) * values[k - 1] + w * values[k]
-            status = JointStatus.OK
-        q, q_dot = row[:3], row[3:]
-        if not np.all(np.isfinite(q_dot)):
-            q_dot = self._slope(times, values, time_s, rate_window_s)
-        return JointSample(float(time_s), q, q_dot, status, age)
-
-    @staticmethod
-    def _slope(times: Array, values: Array, time_s: float, window_s: float) -> Array:
-        if times.size < 2:
-            return np.zeros(3)
-        lo = max(times[0], min(time_s - window_s / 2, times[-1] - window_s))
-        hi = min(times[-1], lo + window_s)
-        if hi <= lo:
-            return np.zeros(3)
-        q_lo = [np.interp(lo, times, values[:, j]) for j in range(3)]
-        q_hi = [np.interp(hi, times, values[:, j]) for j in range(3)]
-        return (np.array(q_hi) - np.array(q_lo)) / (hi - lo)
+        return self.snapshot().sample(time_s, self.stale_after_s, rate_window_s)
 
 
 class JointStreamer:
@@ -517,74 +358,6 @@ class JointStreamer:
         self.stop()
 
 
-# --------------------------------------------------------------------------------- estimates
-ESTIMATE_FLAG_BITS = 16
-"""Bits 0-15 of the estimate flags carry ``tracker.types.Flag``; bits 16-30 the live
-loop's status (``LiveStatus``) shifted by 16; bit 31 says the estimate is valid."""
-VALID_BIT = 1 << 31
-
-
-@dataclass(frozen=True)
-class EstimateMessage:
-    """One decoded estimate datagram (angles in rad, times in s)."""
-
-    sequence: int
-    time_s: float
-    delta_L_rad: float
-    std_rad: float
-    delta_1_rad: float
-    q_r_rad: float
-    latency_s: float
-    estimator_flags: int
-    status: int
-    valid: bool
-
-
-def encode_estimate(
-    sequence: int, estimate: Estimate, latency_s: float, status: int = 0
-) -> bytes:
-    """The 64-byte estimate datagram of one frame."""
-    flags = int(estimate.flags.value) & 0xFFFF
-    flags |= (int(status) & 0x7FFF) << ESTIMATE_FLAG_BITS
-    valid = estimate.valid
-    if valid:
-        flags |= VALID_BIT
-    delta_1 = estimate.delta_1_rad if valid else math.nan
-    return ESTIMATE_STRUCT.pack(
-        ESTIMATE_MAGIC,
-        VERSION,
-        0,
-        sequence % _UINT32,
-        flags,
-        float(estimate.time_s),
-        float(estimate.delta_L_rad),
-        float(estimate.std_rad),
-        float(delta_1),
-        float(estimate.q_r_rad),
-        float(latency_s),
-    )
-
-
-def decode_estimate(data: bytes) -> EstimateMessage:
-    """Validate and decode an estimate datagram, or raise :class:`DatagramError`."""
-    _check_header(data, ESTIMATE_MAGIC, "estimate", ESTIMATE_STRUCT.size)
-    _, _, _, sequence, flags, t, delta_L, std, delta_1, q_r, latency = ESTIMATE_STRUCT.unpack(
-        data
-    )
-    return EstimateMessage(
-        sequence=sequence,
-        time_s=t,
-        delta_L_rad=delta_L,
-        std_rad=std,
-        delta_1_rad=delta_1,
-        q_r_rad=q_r,
-        latency_s=latency,
-        estimator_flags=flags & 0xFFFF,
-        status=(flags >> ESTIMATE_FLAG_BITS) & 0x7FFF,
-        valid=bool(flags & VALID_BIT),
-    )
-
-
 class EstimateSender:
     """Sends one estimate datagram per frame to the controller (a live-loop sink).
 
@@ -644,125 +417,6 @@ class EstimateSender:
         self.close()
 
 
-# ----------------------------------------------------------------------------------- markers
-@dataclass(frozen=True)
-class SegmentedMarkers:
-    """Points of both views segmented elsewhere, without joint values.
-
-    Rows ``[tip, marker_0, ...]`` as in :class:`tracker.types.Frame`; NaN rows for points
-    not found. The live loop joins them with the joint values at ``time_s``.
-    """
-
-    time_s: float
-    uv_front: Array  # (P, 2)
-    uv_side: Array  # (P, 2)
-    cov_front: Array  # (P, 2, 2)
-    cov_side: Array  # (P, 2, 2)
-    sequence: int = 0
-
-    def frame(self, q: Array, q_dot: Array | None) -> Frame:
-        """The pipeline frame with these joint values."""
-        return Frame(
-            time_s=float(self.time_s),
-            q=np.asarray(q, dtype=float),
-            q_dot=None if q_dot is None else np.asarray(q_dot, dtype=float),
-            uv_front=self.uv_front,
-            uv_side=self.uv_side,
-            cov_front=self.cov_front,
-            cov_side=self.cov_side,
-        )
-
-
-def marker_datagram_size(n_points: int) -> int:
-    """Bytes of a marker datagram with ``n_points`` rows per view: 24 + 48 n_points."""
-    return _MARKER_HEAD.size + 2 * n_points * 3 * 8
-
-
-def _sigma_from_covariance(cov: Array) -> Array:
-    """Isotropic sigma per row: sqrt of the mean of the two variances (NaN stays NaN)."""
-    cov = np.asarray(cov, dtype=float)
-    return np.sqrt(0.5 * (cov[..., 0, 0] + cov[..., 1, 1]))
-
-
-def encode_markers(
-    sequence: int,
-    time_s: float,
-    uv_front: Array,
-    uv_side: Array,
-    sigma_front: Array,
-    sigma_side: Array,
-) -> bytes:
-    """A marker datagram: per view ``n_points`` rows of (u, v, sigma); NaN rows for missing.
-
-    ``sigma`` is the isotropic segmentation std of each point, in the image unit (px, or mm
-    in an orthographic plane); scalars broadcast over the rows.
-    """
-    uv_f, uv_s = np.asarray(uv_front, float), np.asarray(uv_side, float)
-    n = uv_f.shape[0]
-    if uv_f.shape != (n, 2) or uv_s.shape != (n, 2) or not 1 <= n <= MAX_MARKER_POINTS:
-        raise ValueError(
-            f"marker rows must have shape (n, 2) in both views with 1 <= n <= "
-            f"{MAX_MARKER_POINTS}, got {uv_f.shape} and {uv_s.shape}"
-        )
-    rows = []
-    for uv, sigma in ((uv_f, sigma_front), (uv_s, sigma_side)):
-        sigma = np.broadcast_to(np.asarray(sigma, float), (n,))
-        rows.append(np.column_stack([uv, sigma]))
-    head = _MARKER_HEAD.pack(MARKER_MAGIC, VERSION, 0, sequence % _UINT32, n, 0, float(time_s))
-    return head + np.concatenate(rows).astype("<f8").tobytes()
-
-
-def encode_segmented(markers: SegmentedMarkers) -> bytes:
-    """:func:`encode_markers` of a :class:`SegmentedMarkers` (covariances -> isotropic sigma)."""
-    return encode_markers(
-        markers.sequence,
-        markers.time_s,
-        markers.uv_front,
-        markers.uv_side,
-        _sigma_from_covariance(markers.cov_front),
-        _sigma_from_covariance(markers.cov_side),
-    )
-
-
-def decode_markers(data: bytes, n_points: int | None = None) -> SegmentedMarkers:
-    """Validate and decode a marker datagram, or raise :class:`DatagramError`.
-
-    A row is missing (NaN in the result) when its u or v is NaN; a present row needs finite
-    u, v and a positive finite sigma. ``n_points`` checks the row count against the catheter.
-    """
-    if len(data) < _MARKER_HEAD.size:
-        raise DatagramError("size", f"marker datagram of {len(data)} bytes has no full header")
-    _check_header(data, MARKER_MAGIC, "marker", None)
-    _, _, _, sequence, n, _, time_s = _MARKER_HEAD.unpack_from(data)
-    if not 1 <= n <= MAX_MARKER_POINTS:
-        raise DatagramError("points", f"marker datagram declares {n} points per view")
-    if len(data) != marker_datagram_size(n):
-        raise DatagramError(
-            "size", f"marker datagram has {len(data)} bytes, expected {marker_datagram_size(n)}"
-        )
-    if n_points is not None and n != n_points:
-        raise DatagramError(
-            "points", f"marker datagram has {n} points per view, the catheter has {n_points}"
-        )
-    if not math.isfinite(time_s):
-        raise DatagramError("non-finite", "marker datagram time is not finite")
-    rows = np.frombuffer(data, dtype="<f8", offset=_MARKER_HEAD.size).reshape(2, n, 3)
-    out = []
-    for view in rows:
-        uv, sigma = view[:, :2].astype(float), view[:, 2].astype(float)
-        missing = np.isnan(uv).any(axis=1)
-        present = ~missing
-        if not (np.all(np.isfinite(uv[present])) and np.all(np.isfinite(sigma[present]))):
-            raise DatagramError("non-finite", "marker datagram holds an infinite value")
-        if np.any(sigma[present] <= 0):
-            raise DatagramError("sigma", "marker datagram holds a non-positive sigma")
-        uv[missing] = np.nan
-        cov = (sigma**2)[:, None, None] * np.eye(2)
-        cov[missing] = np.nan
-        out.extend([uv, cov])
-    return SegmentedMarkers(float(time_s), out[0], out[2], out[1], out[3], sequence)
-
-
 class MarkerReceiver:
     """Segmented-marker datagrams in (non-blocking UDP socket, loopback by default).
 
@@ -774,6 +428,8 @@ class MarkerReceiver:
     host, port : str, int
     n_points : int, optional
         Rows per view expected (1 + the catheter's markers).
+    n_views : int, optional
+        Views expected (the rig's).
     """
 
     def __init__(
@@ -782,9 +438,11 @@ class MarkerReceiver:
         port: int = DEFAULT_MARKER_PORT,
         *,
         n_points: int | None = None,
+        n_views: int | None = None,
         rcvbuf_bytes: int = 1 << 21,
     ) -> None:
         self.n_points = n_points
+        self.n_views = n_views
         self.counts = StreamCounts()
         self._buffer = bytearray(_RECEIVE_BUFFER_BYTES)
         self._sock: socket.socket | None = _udp_socket(host, port, rcvbuf_bytes)
@@ -810,7 +468,7 @@ class MarkerReceiver:
                 return out
             self.counts.received += 1
             try:
-                out.append(decode_markers(bytes(view[:n]), self.n_points))
+                out.append(decode_markers(bytes(view[:n]), self.n_points, self.n_views))
             except DatagramError as exc:
                 self.counts.count_malformed(exc.reason)
                 continue

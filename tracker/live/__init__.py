@@ -1,1 +1,1 @@
-"""The online loop: frame sources, the loop itself, and its sinks."""
+"""The online loop: frame sources, the loop itself, its sinks, and a session that wires them."""

@@ -1,4 +1,4 @@
-"""The online tracking loop (DESIGN.md section 6): the replay pipeline fed live.
+"""The online tracking loop (docs/design.md section 6): the replay pipeline fed live.
 
     source -> (segmentation, for images) -> Reconstructor -> estimator -> sinks
 
@@ -15,7 +15,8 @@ Faults, each counted in the :class:`LiveSummary`:
   never stale joints with fresh markers;
 - a frame that cannot be segmented or reconstructed is dropped and reported once per cause;
 - an estimator error gives an invalid estimate (NaN) for that frame, reported once;
-- a sink that raises is reported once and disabled; the loop goes on;
+- a sink (:mod:`tracker.live.sinks`) that raises is reported once and disabled; the loop
+  goes on;
 - Ctrl-C (SIGINT) or SIGTERM ends the loop after the current frame; a second Ctrl-C
   interrupts at once. Every sink is closed (recordings finalised) and sockets released in
   all cases, and :meth:`LiveTracker.run` returns the summary.
@@ -23,10 +24,7 @@ Faults, each counted in the :class:`LiveSummary`:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import enum
-import inspect
 import math
 import re
 import signal
@@ -35,188 +33,17 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
-from tracker.io.udp import JointReceiver, JointStatus, SegmentedMarkers, StreamCounts
-from tracker.live.sources import ImagePair
+from tracker.io.datagrams import SegmentedMarkers
+from tracker.io.joints import JointStatus
+from tracker.io.udp import JointReceiver, StreamCounts
+from tracker.live.sinks import PREDICT_ONLY, LiveResult, LiveStatus, Sink
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag, Frame, Observation
 
 Array = np.ndarray
-
-
-class LiveStatus(enum.IntFlag):
-    """What the live loop noticed about a frame (bits 16.. of the estimate datagram flags)."""
-
-    NONE = 0
-    STALE_JOINTS = 1  # the joint stream had stopped: predict only
-    NO_JOINTS = 2  # no joint value received yet: predict only
-    JOINTS_CLAMPED = 4  # image time just outside the joint history: nearest sample used
-    ESTIMATOR_ERROR = 8  # the estimator raised: invalid estimate
-
-
-class Sink(Protocol):
-    """Where results go. ``handle`` may also accept a keyword ``status`` (a LiveStatus)."""
-
-    def handle(
-        self, frame: Frame, observation: Observation, estimate: Estimate, latency_s: float
-    ) -> None: ...
-
-    def close(self) -> None: ...
-
-
-@dataclass(frozen=True)
-class LiveResult:
-    """One processed frame."""
-
-    frame: Frame
-    observation: Observation
-    estimate: Estimate
-    latency_s: float
-    status: LiveStatus = LiveStatus.NONE
-
-
-class MemorySink:
-    """Keeps every result (tests, notebooks)."""
-
-    name = "memory"
-
-    def __init__(self) -> None:
-        self.results: list[LiveResult] = []
-        self.closed = False
-
-    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE) -> None:
-        self.results.append(LiveResult(frame, observation, estimate, latency_s, status))
-
-    def close(self) -> None:
-        self.closed = True
-
-
-CSV_COLUMNS = (
-    "time_s",
-    "delta_L_rad",
-    "std_rad",
-    "delta_1_rad",
-    "q_r_rad",
-    "q_p_mm",
-    "q_d_mm",
-    "estimator_flags",
-    "live_status",
-    "latency_s",
-    "delta_L_true_rad",
-)
-
-
-class CsvSink:
-    """One CSV row per frame (columns :data:`CSV_COLUMNS`; radians, seconds, mm)."""
-
-    name = "csv"
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self._file = self.path.open("w", newline="")
-        self._writer = csv.writer(self._file)
-        self._writer.writerow(CSV_COLUMNS)
-        self.rows = 0
-
-    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE) -> None:
-        q = np.asarray(frame.q, dtype=float)
-        truth = frame.delta_L_true_rad
-        self._writer.writerow(
-            [
-                repr(float(estimate.time_s)),
-                repr(float(estimate.delta_L_rad)),
-                repr(float(estimate.std_rad)),
-                repr(float(estimate.delta_1_rad)),
-                repr(float(estimate.q_r_rad)),
-                repr(float(q[1])),
-                repr(float(q[2])),
-                int(estimate.flags.value),
-                int(status),
-                f"{latency_s:.6f}",
-                "" if truth is None else repr(float(truth)),
-            ]
-        )
-        self.rows += 1
-
-    def close(self) -> None:
-        if not self._file.closed:
-            self._file.close()
-
-
-class RerunLiveSink:
-    """A :class:`tracker.viewer.sink.RerunSink` as a live-loop sink (the 3-D scene, images, series).
-
-    Parameters
-    ----------
-    viewer : tracker.viewer.sink.RerunSink
-    scene : replay.simulation.simulator.Scene or anything with catheter, rig, R_w_b, o_b_w_mm
-    method : str
-        Name of the estimator, for the time series.
-    images : bool
-        Log the images (heavier).
-    """
-
-    name = "rerun"
-
-    def __init__(self, viewer, scene, method: str, images: bool = True) -> None:
-        self.viewer, self.scene, self.method, self.images = viewer, scene, method, images
-
-    def handle(self, frame, observation, estimate, latency_s) -> None:
-        self.viewer.log_frame(frame, observation, {self.method: estimate}, self.scene, self.images)
-        self.viewer.log_estimate(self.method, estimate, frame.delta_L_true_rad)
-
-    def close(self) -> None:
-        # The viewer module owns the rerun calls: its close() (or flush()) ends the stream.
-        for method in ("close", "flush"):
-            closer = getattr(self.viewer, method, None)
-            if closer is not None:
-                closer()
-                return
-
-
-class RecordingSink:
-    """Writes the session to an MCAP recording (:class:`tracker.io.recording.RecordingWriter`).
-
-    Per frame: the joint samples received since the previous frame (or, without a joint
-    receiver, the frame's own joint values), the markers (and images), the estimate.
-    ``close()`` finishes the file (last chunk and summary).
-
-    Parameters
-    ----------
-    writer : tracker.io.recording.RecordingWriter
-    method : str
-        Estimate topic ``/estimates/<method>``.
-    joints : JointReceiver, optional
-        Record its raw samples (1 kHz) rather than the per-frame interpolated values.
-    images : bool
-    """
-
-    name = "recording"
-
-    def __init__(
-        self, writer, method: str, joints: JointReceiver | None = None, images: bool = True
-    ) -> None:
-        self.writer, self.method, self.joints, self.images = writer, method, joints, images
-        self._joints_until_s = -math.inf
-
-    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE) -> None:
-        if self.joints is not None:
-            times, q, q_dot = self.joints.samples_after(self._joints_until_s)
-            if times.size:
-                rates = None if not np.all(np.isfinite(q_dot)) else q_dot
-                self.writer.write_joints(times, q, rates)
-                self._joints_until_s = float(times[-1])
-        elif not status & (LiveStatus.STALE_JOINTS | LiveStatus.NO_JOINTS):
-            self.writer.write_joints(frame.time_s, frame.q, frame.q_dot)
-        self.writer.write_frame(frame, images=self.images)
-        self.writer.write_estimate(self.method, estimate)
-
-    def close(self) -> None:
-        self.writer.close()
 
 
 # ---------------------------------------------------------------------------- bookkeeping
@@ -315,21 +142,13 @@ def _report_stderr(message: str) -> None:
 
 @dataclass
 class _SinkEntry:
-    sink: object
+    sink: Sink
     name: str
-    wants_status: bool
     enabled: bool = True
 
 
 def _sink_name(sink: object) -> str:
     return str(getattr(sink, "name", type(sink).__name__))
-
-
-def _accepts_status(sink: object) -> bool:
-    try:
-        return "status" in inspect.signature(sink.handle).parameters
-    except (TypeError, ValueError):
-        return False
 
 
 class _StopRequest:
@@ -368,14 +187,15 @@ class LiveTracker:
     estimator : Estimator
         From :func:`tracker.estimators.make_estimator` (``"ukf"`` for live tracking).
     sinks : sequence of Sink
-        Called in order; put the estimate sender first, it is the one the latency is for.
+        Called in order (:mod:`tracker.live.sinks`); put the estimate sender first, it is the
+        one the latency is for.
     joints : JointReceiver, optional
         Joint values for every frame, interpolated to its time; frames that carry their own
         joint values (simulation, recordings) keep them when no receiver is given.
     segmenter : optional
-        Anything with ``segment((image_front, image_side))`` returning an object with
-        ``uv_front, uv_side, cov_front, cov_side`` (:class:`PairSegmenter`);
-        needed when the source yields images.
+        Anything with ``segment(images)`` (one image per view) returning an object with
+        ``uv`` and ``cov`` (one array per view; :class:`PairSegmenter`); needed when the
+        source yields images.
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -386,7 +206,7 @@ class LiveTracker:
         self,
         reconstructor: Reconstructor,
         estimator,
-        sinks: Sequence[object] = (),
+        sinks: Sequence[Sink] = (),
         *,
         joints: JointReceiver | None = None,
         segmenter=None,
@@ -399,7 +219,7 @@ class LiveTracker:
         self.segmenter = segmenter
         self.report = report
         self.monotonic = monotonic
-        self._sinks = [_SinkEntry(s, _sink_name(s), _accepts_status(s)) for s in sinks]
+        self._sinks = [_SinkEntry(s, _sink_name(s)) for s in sinks]
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
         self.latency = LatencyRecorder()
         self.cycle = LatencyRecorder()
@@ -409,9 +229,13 @@ class LiveTracker:
         self.time_is_monotonic = False
 
     @property
-    def sinks(self) -> list[object]:
+    def sinks(self) -> list[Sink]:
         """The sinks still enabled."""
         return [e.sink for e in self._sinks if e.enabled]
+
+    def add_sink(self, sink: Sink) -> None:
+        """Call ``sink`` after the others (before the run starts)."""
+        self._sinks.append(_SinkEntry(sink, _sink_name(sink)))
 
     def _report_once(self, key: str, message: str) -> None:
         if key not in self._reported:
@@ -419,14 +243,12 @@ class LiveTracker:
             self.report(message)
 
     # ------------------------------------------------------------------ one frame
-    def _markers(self, item) -> tuple[SegmentedMarkers, tuple[Array, Array] | None]:
+    def _markers(self, item) -> tuple[SegmentedMarkers, tuple[Array, ...] | None]:
         if isinstance(item, SegmentedMarkers):
             return item, None
-        time_s, image_front, image_side = item
-        images = (image_front, image_side)
+        time_s, images = item
         seg = self.segmenter.segment(images)
-        markers = SegmentedMarkers(time_s, seg.uv_front, seg.uv_side, seg.cov_front, seg.cov_side)
-        return markers, images
+        return SegmentedMarkers(time_s, tuple(seg.uv), tuple(seg.cov)), tuple(images)
 
     def _joints_at(
         self, time_s: float, frame: Frame | None
@@ -452,7 +274,7 @@ class LiveTracker:
 
         Parameters
         ----------
-        item : ImagePair, SegmentedMarkers or Frame
+        item : ImageSet, SegmentedMarkers or Frame
         received_s : float, optional
             Monotonic time the item left the source (latency reference unless the source's
             times are monotonic stamps); now if not given.
@@ -460,7 +282,7 @@ class LiveTracker:
         s = self.summary
         received_s = self.monotonic() if received_s is None else received_s
         s.frames_received += 1
-        is_images = isinstance(item, tuple)  # ImagePair or a plain (time, front, side)
+        is_images = isinstance(item, tuple)  # ImageSet or a plain (time, images)
         if is_images and self.segmenter is None:
             raise ValueError("the source yields images but the live loop has no segmenter")
         time_s = float(item[0] if is_images else item.time_s)
@@ -488,7 +310,7 @@ class LiveTracker:
                     frame = dataclasses.replace(frame, images=images)
             elif self.joints is not None:
                 frame = dataclasses.replace(frame, q=q, q_dot=q_dot)
-            if status & (LiveStatus.STALE_JOINTS | LiveStatus.NO_JOINTS):
+            if status & PREDICT_ONLY:
                 # Predict only: markers with stale joints would pull the estimate wrong.
                 self.reconstructor.reset()
                 observation = Observation(time_s=time_s, q=q)
@@ -532,10 +354,7 @@ class LiveTracker:
             if not entry.enabled:
                 continue
             try:
-                if entry.wants_status:
-                    entry.sink.handle(frame, observation, estimate, latency_s, status=status)
-                else:
-                    entry.sink.handle(frame, observation, estimate, latency_s)
+                entry.sink.handle(frame, observation, estimate, latency_s, status)
             except Exception as exc:  # any sink failure: report, disable, go on
                 entry.enabled = False
                 failure = f"{type(exc).__name__}: {exc}"
@@ -647,7 +466,7 @@ def run_live(
     source: Iterable,
     reconstructor: Reconstructor,
     estimator,
-    sinks: Sequence[object] = (),
+    sinks: Sequence[Sink] = (),
     *,
     joints: JointReceiver | None = None,
     segmenter=None,
@@ -666,17 +485,8 @@ def run_live(
 
 
 __all__ = [
-    "CSV_COLUMNS",
-    "CsvSink",
-    "ImagePair",
     "LatencyRecorder",
-    "LiveResult",
-    "LiveStatus",
     "LiveSummary",
     "LiveTracker",
-    "MemorySink",
-    "RecordingSink",
-    "RerunLiveSink",
-    "Sink",
     "run_live",
 ]

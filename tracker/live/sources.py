@@ -1,8 +1,8 @@
-"""Frame sources of the live loop (DESIGN.md sections 6 and 7).
+"""Frame sources of the live loop (docs/design.md sections 6 and 7).
 
 A source is an iterable of items, each one of
 
-- :class:`ImagePair` ``(time_s, image_front, image_side)``: grayscale images to segment;
+- :class:`ImageSet` ``(time_s, images)``: grayscale images of every view to segment;
 - :class:`tracker.io.udp.SegmentedMarkers`: points segmented elsewhere, without joint values;
 - :class:`tracker.types.Frame`: a complete frame (simulation, recordings);
 - ``None``: nothing arrived within the source's poll interval (lets the loop drain the
@@ -14,34 +14,39 @@ stamp; otherwise from the moment the item left the source. A source may have ``c
 the loop calls it on exit.
 
 Sources here: two cameras or video files through OpenCV (:class:`VideoSource`), segmented
-markers over UDP (:class:`UdpMarkerSource`), a simulated session (:func:`simulated_session`,
-:class:`SimulatedSource`, :class:`RenderedSource`), and :class:`PacedSource`, which releases
-any time-stamped items (e.g. the frames of a recording) at real time.
+markers over UDP (:class:`UdpMarkerSource`), the frames of a recording
+(:class:`RecordingSource`), and :class:`PacedSource`, which releases any time-stamped items at
+real time. Simulated sessions are in :mod:`replay.simulation.sources`.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
-from tracker.io.udp import MarkerReceiver, SegmentedMarkers
+from models.imaging import default_view_names
+from tracker.io.datagrams import SegmentedMarkers
+from tracker.io.recording import Recording, open_recording
+from tracker.io.udp import MarkerReceiver
 from tracker.types import Frame
 
 Array = np.ndarray
 
 
-class ImagePair(NamedTuple):
-    """A synchronised pair of grayscale images (uint8, (h, w)) and its time stamp, s."""
+class ImageSet(NamedTuple):
+    """Synchronised grayscale images (uint8, (h, w)), one per view of the rig in its order,
+    and their time stamp, s."""
 
     time_s: float
-    image_front: Array
-    image_side: Array
+    images: tuple[Array, ...]
 
 
-Item = ImagePair | SegmentedMarkers | Frame | None
+Item = ImageSet | SegmentedMarkers | Frame | None
 
 
 # ------------------------------------------------------------------------------------ pacing
@@ -90,18 +95,6 @@ class PacedSource:
             yield item
 
 
-
-
-
-
-
-
-
-
-
-
-
-
 # ---------------------------------------------------------------------------------- OpenCV
 def _capture_spec(spec: int | str) -> int | str:
     """A camera index (int, or a string of digits) or a file path / URL."""
@@ -114,14 +107,10 @@ def _describe(name: str, spec: int | str) -> str:
     return f"{name} camera {spec}" if isinstance(spec, int) else f"{name} video {spec!r}"
 
 
-def open_capture(spec: int | str, name: str = "front"):
+def open_capture(spec: int | str, name: str = "view"):
     """``cv2.VideoCapture`` of a camera index or a video file, or one clear OSError naming it."""
-    import cv2
-
     spec = _capture_spec(spec)
     if isinstance(spec, str) and "://" not in spec:
-        from pathlib import Path
-
         if not Path(spec).is_file():
             raise OSError(f"cannot open the {_describe(name, spec)}: no such file")
     capture = cv2.VideoCapture(spec)
@@ -135,8 +124,6 @@ def open_capture(spec: int | str, name: str = "front"):
 
 
 def _gray(image: Array) -> Array:
-    import cv2
-
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         return cv2.cvtColor(image, code)
@@ -144,17 +131,20 @@ def _gray(image: Array) -> Array:
 
 
 class VideoSource:
-    """Two cameras or two video files through OpenCV, as :class:`ImagePair` items.
+    """One camera or video file per view through OpenCV, as :class:`ImageSet` items.
 
-    Both captures are grabbed first and decoded afterwards, so the two exposures are as close
-    in time as the devices allow. Camera images are stamped with ``time.monotonic()`` at the
-    grab; video-file images with the front file's position (``CAP_PROP_POS_MSEC``), paced at
-    real time when ``realtime`` is set. Iteration ends when either capture stops delivering.
+    All captures are grabbed first and decoded afterwards, so the exposures are as close in
+    time as the devices allow. Camera images are stamped with ``time.monotonic()`` at the
+    grab; video-file images with the first file's position (``CAP_PROP_POS_MSEC``), paced at
+    real time when ``realtime`` is set. Iteration ends when any capture stops delivering.
 
     Parameters
     ----------
-    front, side : int or str
-        Camera index (or its digits as a string), video file or stream URL.
+    specs : sequence of int or str
+        Per view, in the rig's order: camera index (or its digits as a string), video file or
+        stream URL.
+    names : sequence of str, optional
+        The views' names, for messages (default: the rig's default names).
     realtime : bool
         Pace video files at their frame rate (cameras are paced by themselves).
     monotonic : callable
@@ -162,52 +152,59 @@ class VideoSource:
 
     def __init__(
         self,
-        front: int | str,
-        side: int | str,
+        specs: Sequence[int | str],
+        names: Sequence[str] | None = None,
         realtime: bool = False,
         monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.specs = (_capture_spec(front), _capture_spec(side))
+        self.specs = tuple(_capture_spec(spec) for spec in specs)
+        self.names = default_view_names(len(self.specs)) if names is None else tuple(names)
+        if len(self.names) != len(self.specs) or len(self.specs) < 2:
+            raise ValueError(
+                f"need one capture per view (two or more), got {len(self.specs)} for"
+                f" views {self.names}"
+            )
         self.time_is_monotonic = any(isinstance(s, int) for s in self.specs)
         self.realtime = realtime
         self.monotonic = monotonic
         self.stop_reason: str | None = None
         self._captures = []
         try:
-            for name, spec in zip(("front", "side"), self.specs, strict=True):
+            for name, spec in zip(self.names, self.specs, strict=True):
                 self._captures.append(open_capture(spec, name))
         except OSError:
             self.close()
             raise
 
-    def __iter__(self) -> Iterator[ImagePair]:
-        import cv2
-
-        front, side = self._captures
+    def __iter__(self) -> Iterator[ImageSet]:
+        captures = list(self._captures)
         start = first = None
         while self._captures:
-            grabbed = (front.grab(), side.grab())
+            grabbed = [c.grab() for c in captures]
             stamp = self.monotonic()
             if not all(grabbed):
-                which = [_describe(n, s) for n, s, ok in zip(("front", "side"), self.specs,
-                                                             grabbed, strict=True) if not ok]
+                which = [
+                    _describe(n, s)
+                    for n, s, ok in zip(self.names, self.specs, grabbed, strict=True)
+                    if not ok
+                ]
                 self.stop_reason = f"{' and '.join(which)} stopped delivering images"
                 return
-            images = [c.retrieve()[1] for c in (front, side)]
+            images = [c.retrieve()[1] for c in captures]
             if any(image is None for image in images):
                 self.stop_reason = "a capture returned an empty image"
                 return
             if self.time_is_monotonic:
                 time_s = stamp
             else:
-                time_s = front.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+                time_s = captures[0].get(cv2.CAP_PROP_POS_MSEC) / 1000.0
                 if self.realtime:
                     if start is None:
                         start, first = stamp, time_s
                     wait = start + (time_s - first) - self.monotonic()
                     if wait > 0:
                         time.sleep(wait)
-            yield ImagePair(time_s, _gray(images[0]), _gray(images[1]))
+            yield ImageSet(time_s, tuple(_gray(image) for image in images))
 
     def close(self) -> None:
         for capture in self._captures:
@@ -269,7 +266,7 @@ class RecordingSource(PacedSource):
 
     Parameters
     ----------
-    recording : str, Path or tracker.io.recording.Recording
+    recording : str, Path or Recording
     speed : float or None
     images : bool
         Decode the recorded images (for a viewer); the loop itself uses the recorded markers.
@@ -280,9 +277,13 @@ class RecordingSource(PacedSource):
         Not a readable cathtrack recording.
     """
 
-    def __init__(self, recording, speed: float | None = 1.0, images: bool = False, **kwargs):
-        from tracker.io.recording import Recording, open_recording
-
+    def __init__(
+        self,
+        recording: str | Path | Recording,
+        speed: float | None = 1.0,
+        images: bool = False,
+        **kwargs,
+    ) -> None:
         if not isinstance(recording, Recording):
             recording = open_recording(recording)
         self.recording = recording

@@ -1,1 +1,2 @@
-"""The rerun viewer: entity layout and blueprint, and the sink that logs to it."""
+"""The rerun viewer: entity layout and blueprint (layout), the sinks that log to it (sink),
+and the outputs of a command (output)."""

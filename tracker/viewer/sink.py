@@ -1,218 +1,114 @@
-"""Every rerun call of the project: entity paths, the default blueprint, the logging sinks and
-the rerun outputs (file, viewer, server) of the command line.
+"""The rerun sink: every ``log`` call of the project, on an explicit :class:`rerun.RecordingStream`.
 
-The live loop and the offline replay share :class:`RerunSink`, which logs to an explicit
-:class:`rerun.RecordingStream` (never the global one):
+:class:`RerunSink` logs frames and estimates (one at a time, or a whole replay as columns) to
+the entity paths of :mod:`tracker.viewer.layout`; the offline replay uses it directly.
+:class:`LiveViewerSink` is the live loop's rerun sink (:mod:`tracker.live.sinks`): it adds the
+loop's latency and frame counts, thins out the images and reports a viewer that goes away.
 
-- ``world/...`` -- the 3-D scene in {W}, mm: the catheter model at the estimated bending plane
-  and, where known, at the true one; the reconstructed markers; the tip's +/-2 sigma arc of
-  uncertainty about the base axis and the +/-2 sigma fan of the bending plane; the cameras
-  (pinhole views) with their images;
-- ``world/cameras/<view>/...`` -- each camera's image, the segmented markers and the markers
-  reprojected from the estimate (pinhole rigs); ``views/<view>/...`` the same points in mm
-  for the paper's orthographic planes, which have no camera;
-- ``series/...`` -- time series in degrees: delta_L of every method with the truth and the
-  +/-2 sigma band, the bending-plane error, and the NIS; in live runs also the latency from
-  the image time stamp to the estimate (ms) and the dropped and predict-only frames.
-
-Time is the ``time`` timeline (s since the start of the session) and the ``frame`` sequence.
-
-:class:`LiveViewerSink` is the live loop's rerun sink (:mod:`tracker.live.loop`);
-:func:`add_rerun_args` and :func:`open_rerun_output` turn the usual rerun flags into the
-outputs of a command: an ``.rrd`` file, a viewer (connected to or spawned), a gRPC server for
-web viewers, or several at once.
+What the series show (one rule for a frame at a time and for a whole replay,
+:meth:`RerunSink._series_values`): delta_L unwrapped (each value the 2 pi multiple nearest the
+unwrapped truth at that time, else nearest the method's previous value), its +/-2 sigma band,
+the wrapped error and its +/-2 sigma about zero, and NIS per degree of freedom with the
+chi-square 95% band of its degrees of freedom. A frame without an estimate is a gap (NaN),
+not a line drawn across.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import socket
+import math
 import sys
-import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
+from scipy.stats import chi2
 
 from models.imaging import PinholeView
+from models.pose import Pose
 from models.rotations import wrap_angle
+from tracker.live.sinks import PREDICT_ONLY, LiveStatus
 from tracker.types import Estimate, Frame, Observation
+from tracker.viewer.layout import (
+    BENDING_PLANE,
+    CATHETER_ESTIMATE,
+    CATHETER_TRUTH,
+    DELTA_L_TRUTH,
+    DIAL_FRAME,
+    DIAL_TRUTH,
+    DROPPED_COLOR,
+    FAN_ALPHA,
+    FRAME_SEQUENCE,
+    FRAMES_DROPPED,
+    FRAMES_PREDICT_ONLY,
+    JOINT_COLORS,
+    LATENCY_COLOR,
+    LATENCY_ESTIMATE,
+    MARKERS_3D,
+    PLANE_ALPHA,
+    PLANE_FAN,
+    PLANE_FAN_EDGE,
+    PREDICT_ONLY_COLOR,
+    REFERENCE_COLOR,
+    SEGMENTED_COLOR,
+    SIDES,
+    TIMELINE,
+    TIP_UNCERTAINTY,
+    TRUTH_COLOR,
+    WORLD,
+    band_path,
+    bending_plane_w,
+    camera_path,
+    delta_L_path,
+    dial_needle,
+    dial_path,
+    dial_points,
+    error_band_path,
+    error_path,
+    image_path,
+    joint_path,
+    method_color,
+    nis_band_path,
+    nis_path,
+    plane_fan_w,
+    rings_2d,
+    view_path,
+)
+from tracker.viewer.output import ViewerWatch
 
 Array = np.ndarray
-
-VIEWS = ("front", "side")
-TIMELINE = "time"
-FRAME_SEQUENCE = "frame"
-
-# Entity paths, in one place.
-WORLD = "world"
-CATHETER_ESTIMATE = "world/catheter/estimate"
-CATHETER_TRUTH = "world/catheter/truth"
-TIP_UNCERTAINTY = "world/catheter/uncertainty"
-PLANE_FAN = "world/catheter/plane_fan"
-MARKERS_3D = "world/markers"
-SERIES_DELTA_L = "series/delta_L"
-SERIES_ERROR = "series/error"
-SERIES_NIS = "series/nis"
-SERIES_LATENCY = "series/latency_ms"
-SERIES_FRAMES = "series/frames"
-LATENCY_ESTIMATE = f"{SERIES_LATENCY}/estimate"
-FRAMES_DROPPED = f"{SERIES_FRAMES}/dropped"
-FRAMES_PREDICT_ONLY = f"{SERIES_FRAMES}/predict_only"
-
-DEFAULT_VIEWER_PORT = 9876
-DEFAULT_VIEWER_URL = f"rerun+http://127.0.0.1:{DEFAULT_VIEWER_PORT}/proxy"
-LOOPBACK = "127.0.0.1"
+NIS_BAND = (0.025, 0.975)  # the chi-square 95% band
+# Sizes of the marker glyphs: negative radii are UI points (the same on screen at any zoom).
+RING_RADIUS = {True: 9.0, False: 0.8}  # segmented: rings of 9 px (cameras) or 0.8 mm (planes)
+RING_LINE = -1.0
+DOT_RADIUS = -3.0  # reprojected: filled dots
+DIAL_ORDER = 50.0  # draw order of the dial's needles (rerun draws higher values on top)
 
 
-def camera_path(view: str) -> str:
-    return f"world/cameras/{view}"
+def _report_stderr(message: str) -> None:
+    print(f"cathtrack: {message}", file=sys.stderr, flush=True)
 
 
-def image_path(view: str) -> str:
-    return f"world/cameras/{view}/image"
+def rig_views(rig) -> tuple[tuple[str, object], ...]:
+    """(name, view) of every view of a rig, in its order."""
+    return tuple(zip(rig.names, rig.views, strict=True))
 
 
-def view_path(view: str, pinhole: bool) -> str:
-    """Where a view's 2-D points go: under its camera, or on its own for a plane (mm)."""
-    return camera_path(view) if pinhole else f"views/{view}"
+class _Unwrap:
+    """Makes an angle continuous over time: each value is moved by the multiple of 2 pi that
+    puts it nearest a reference (the truth at that time when known), else nearest the
+    previous value."""
 
+    def __init__(self) -> None:
+        self.last_rad: float | None = None
 
-def delta_L_path(method: str) -> str:
-    return f"{SERIES_DELTA_L}/{method}"
-
-
-def band_path(method: str, side: str) -> str:
-    return f"{SERIES_DELTA_L}/{method}_{side}2sigma"
-
-
-def error_path(method: str) -> str:
-    return f"{SERIES_ERROR}/{method}"
-
-
-def nis_path(method: str) -> str:
-    return f"{SERIES_NIS}/{method}"
-
-
-_PALETTE = [
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-    (188, 189, 34),
-    (23, 190, 207),
-]
-TRUTH_COLOR = (20, 20, 20)
-ESTIMATE_COLOR = (255, 127, 14)
-FAN_COLOR = (255, 127, 14, 70)  # translucent
-SEGMENTED_COLOR = (0, 200, 255)
-REPROJECTED_COLOR = (255, 60, 60)
-LATENCY_COLOR = (31, 119, 180)
-DROPPED_COLOR = (214, 39, 40)
-PREDICT_ONLY_COLOR = (127, 127, 127)
-
-
-def default_blueprint(
-    methods: Sequence[str] = (), pinhole: bool = True, live: bool = False
-) -> rrb.Blueprint:
-    """3-D scene and both views on the left; delta_L, error and NIS over time on the right.
-
-    ``live`` adds the loop's latency and its dropped and predict-only frames below them.
-    """
-    views = [rrb.Spatial2DView(origin=view_path(v, pinhole), name=f"{v} view") for v in VIEWS]
-    series = [
-        rrb.TimeSeriesView(origin=SERIES_DELTA_L, name="delta_L +/-2 sigma (deg)"),
-        rrb.TimeSeriesView(origin=SERIES_ERROR, name="bending-plane error (deg)"),
-        rrb.TimeSeriesView(origin=SERIES_NIS, name="NIS"),
-    ]
-    if live:
-        series.append(
-            rrb.Horizontal(
-                rrb.TimeSeriesView(origin=SERIES_LATENCY, name="latency image -> estimate (ms)"),
-                rrb.TimeSeriesView(origin=SERIES_FRAMES, name="dropped / predict-only frames"),
-            )
-        )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial3DView(origin=WORLD, name="3-D scene"),
-                rrb.Horizontal(*views),
-                row_shares=[3, 2],
-            ),
-            rrb.Vertical(*series),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
-
-
-def plane_fan_w(
-    catheter,
-    q: Array,
-    delta_L_rad: float,
-    std_rad: float,
-    R_w_b: Array,
-    o_b_w_mm: Array,
-    segments: int = 24,
-    min_radius_fraction: float = 0.25,
-) -> tuple[Array, Array]:
-    """The +/-2 sigma fan of the bending plane: a triangle fan in {W}, mm.
-
-    The apex is the base origin; the rim is an arc about the base axis at the tip's height,
-    from 2 sigma before to 2 sigma after the tip's direction (the whole turn when 2 sigma
-    exceeds pi or is not finite). Every half-plane through the base axis and a rim point is a
-    bending plane within +/-2 sigma of the estimate. The rim radius is the tip's distance
-    from the base axis, but at least ``min_radius_fraction`` of the catheter's length so that
-    the fan stays visible when the catheter is nearly straight.
-
-    Parameters
-    ----------
-    catheter : Catheter
-    q : array, shape (3,)
-        Joint values (q_r [rad], q_p [mm], q_d [mm]).
-    delta_L_rad, std_rad : float
-        Estimate and its standard deviation, rad.
-    R_w_b, o_b_w_mm : arrays (3, 3), (3,)
-        Registered base pose in {W}.
-    segments : int
-        Triangles of the fan.
-
-    Returns
-    -------
-    vertices_w : array, shape (segments + 2, 3)
-        The apex, then the rim from -2 sigma to +2 sigma, mm.
-    triangles : array, shape (segments, 3)
-        Vertex indices.
-    """
-    q = np.asarray(q, dtype=float)
-    tip_b = np.asarray(catheter.tip(q, float(delta_L_rad)), dtype=float)
-    lateral_mm = float(np.hypot(tip_b[0], tip_b[1]))
-    # The tip's direction about the base axis; delta_1 = q_r + delta_L when it is on the axis.
-    centre = (
-        float(np.arctan2(tip_b[1], tip_b[0]))
-        if lateral_mm > 1e-9
-        else float(q[0] + delta_L_rad)
-    )
-    spread = 2.0 * float(std_rad)
-    spread = min(spread, np.pi) if np.isfinite(spread) else np.pi
-    radius = max(lateral_mm, min_radius_fraction * catheter.length_mm)
-    phi = centre + np.linspace(-spread, spread, int(segments) + 1)
-    rim_b = np.column_stack(
-        [radius * np.cos(phi), radius * np.sin(phi), np.full(phi.size, tip_b[2])]
-    )
-    vertices_b = np.vstack([np.zeros(3), rim_b])
-    k = np.arange(1, int(segments) + 1)
-    triangles = np.column_stack([np.zeros_like(k), k, k + 1]).astype(np.uint32)
-    R_w_b = np.asarray(R_w_b, dtype=float)
-    return vertices_b @ R_w_b.T + np.asarray(o_b_w_mm, dtype=float), triangles
+    def __call__(self, angle_rad: float, reference_rad: float = math.nan) -> float:
+        if not math.isfinite(angle_rad):
+            return math.nan
+        reference = reference_rad if math.isfinite(reference_rad) else self.last_rad
+        value = angle_rad if reference is None else reference + wrap_angle(angle_rad - reference)
+        self.last_rad = float(value)
+        return self.last_rad
 
 
 class RerunSink:
@@ -249,30 +145,32 @@ class RerunSink:
         self.primary = primary
         self.jpeg_quality = None if jpeg_quality is None else int(jpeg_quality)
         self.time_origin_s = time_origin_s
-        self._s = None
+        self._s = self._truth_s = None
         self._backbone_points = int(backbone_points)
         self._scene_id: int | None = None
-        self._methods: list[str] = []
-        self._frame_index = 0
-        self._truth_logged = False
+        self._pose: Pose | None = None  # the scene's registered base
+        self._styled: set[str] = set()
+        self._unwrap: dict[str, _Unwrap] = {}
+        self._truth_unwrap = _Unwrap()
         self._truth_time_s: float | None = None
+        self._truth_unwrapped_rad = math.nan
+        self._truth_logged = False
+        self._frame_index = 0
         self._live_styled = False
+        self._joints_styled = False
         self._closed = False
 
     # ---------------------------------------------------------------- static
-    def _method_color(self, method: str) -> tuple[int, int, int]:
-        if method not in self._methods:
-            self._methods.append(method)
-        return _PALETTE[self._methods.index(method) % len(_PALETTE)]
-
     def _log_scene(self, scene) -> None:
-        """Cameras (pose and intrinsics) once per scene."""
+        """Cameras (pose and intrinsics) and the dial's face, once per scene."""
         if self._scene_id == id(scene):
             return
         self._scene_id = id(scene)
+        self._pose = Pose(scene.R_w_b, scene.o_b_w_mm)
         self._s = np.linspace(0.0, scene.catheter.length_mm, self._backbone_points)
+        self._truth_s = np.linspace(0.0, scene.catheter.length_mm, 25)
         self.stream.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        for name, view in zip(VIEWS, (scene.rig.front, scene.rig.side), strict=True):
+        for name, view in rig_views(scene.rig):
             if isinstance(view, PinholeView):
                 self.stream.log(
                     camera_path(name),
@@ -280,35 +178,70 @@ class RerunSink:
                     rr.Pinhole(
                         image_from_camera=np.asarray(view.K),
                         resolution=list(view.image_size),
-                        image_plane_distance=50.0,
+                        image_plane_distance=20.0,
                     ),
                     static=True,
                 )
+        self._style_truth()
+        self._log_dial_face()
+
+    def _style_truth(self) -> None:
         self.stream.log(
-            f"{SERIES_DELTA_L}/truth",
-            rr.SeriesLines(colors=[TRUTH_COLOR], names=["truth"], widths=[2.0]),
+            DELTA_L_TRUTH,
+            # Wide, and drawn first: the methods' lines on it stay visible.
+            rr.SeriesLines(colors=[TRUTH_COLOR], names=["truth"], widths=[5.0]),
+            static=True,
+        )
+
+    def _log_dial_face(self) -> None:
+        """The dial: a circle with ticks every 90 deg, labelled."""
+        ticks_deg = np.array([0.0, 90.0, 180.0, -90.0])
+        ticks = np.radians(ticks_deg)
+        circle = np.linspace(0.0, 2.0 * np.pi, 73)
+        strips = [dial_points(circle, np.ones(circle.size))]
+        strips += [dial_points([a, a], [0.92, 1.08]) for a in ticks]
+        self.stream.log(
+            f"{DIAL_FRAME}/circle",
+            rr.LineStrips2D(strips, colors=[REFERENCE_COLOR], radii=[-0.75]),
+            static=True,
+        )
+        self.stream.log(
+            f"{DIAL_FRAME}/labels",
+            rr.Points2D(
+                dial_points(ticks, np.full(ticks.size, 1.25)),
+                radii=[-0.5],
+                colors=[REFERENCE_COLOR],
+                labels=[f"{t:+.0f}" if t else "0 (x_b)" for t in ticks_deg],
+                show_labels=True,
+            ),
             static=True,
         )
 
     def _style_method(self, method: str) -> None:
-        if method in self._methods:
+        """A method's colour and legend name on every series it has: one legend entry per
+        method and plot (the band carries the method's name too, so the legend merges it)."""
+        if method in self._styled:
             return
-        color = self._method_color(method)
-        self.stream.log(
-            delta_L_path(method), rr.SeriesLines(colors=[color], names=[method]), static=True
-        )
-        for side in ("plus", "minus"):
+        self._styled.add(method)
+        color = method_color(method)
+        lines = [(delta_L_path(method), 1.5), (error_path(method), 1.5)]
+        lines += [(band_path(method, side), 1.0) for side in SIDES]
+        lines += [(error_band_path(method, side), 1.0) for side in SIDES]
+        for path, width in lines:
             self.stream.log(
-                band_path(method, side),
-                rr.SeriesLines(colors=[color], names=[f"{method} {side} 2 sigma"], widths=[0.5]),
-                static=True,
+                path, rr.SeriesLines(colors=[color], names=[method], widths=[width]), static=True
             )
         self.stream.log(
-            error_path(method), rr.SeriesLines(colors=[color], names=[method]), static=True
+            nis_path(method),
+            rr.SeriesPoints(colors=[color], names=[method], marker_sizes=[2.0]),
+            static=True,
         )
-        self.stream.log(
-            nis_path(method), rr.SeriesPoints(colors=[color], names=[method]), static=True
-        )
+        for side in ("low", "high"):
+            self.stream.log(
+                nis_band_path(method, side),
+                rr.SeriesLines(colors=[REFERENCE_COLOR], names=["chi-square 95%"], widths=[1.0]),
+                static=True,
+            )
 
     def _style_live(self) -> None:
         if self._live_styled:
@@ -336,11 +269,11 @@ class RerunSink:
             logged = logged.compress(jpeg_quality=self.jpeg_quality)
         return logged
 
-    def _clear_estimate(self, pinhole: bool) -> None:
+    def _clear_estimate(self, names: Sequence[str], pinhole: bool) -> None:
         """No valid estimate: nothing drawn from it (rather than the last one, stale)."""
-        for path in (CATHETER_ESTIMATE, TIP_UNCERTAINTY, PLANE_FAN):
+        for path in (CATHETER_ESTIMATE, TIP_UNCERTAINTY, PLANE_FAN, PLANE_FAN_EDGE, BENDING_PLANE):
             self.stream.log(path, rr.Clear(recursive=False))
-        for name in VIEWS:
+        for name in names:
             self.stream.log(f"{view_path(name, pinhole)}/reprojected", rr.Clear(recursive=False))
 
     def log_frame(
@@ -351,7 +284,8 @@ class RerunSink:
         scene,
         images: bool = True,
     ) -> None:
-        """One frame: images and segmented markers, the 3-D scene at the primary estimate.
+        """One frame: images and segmented markers, the 3-D scene at the primary estimate,
+        the dial of every method given.
 
         Parameters
         ----------
@@ -369,40 +303,69 @@ class RerunSink:
         self._frame_index += 1
         self.set_time(frame.time_s)
         pinhole = scene.rig.kind == "pinhole"
-        R_w_b, o_b_w = np.asarray(scene.R_w_b), np.asarray(scene.o_b_w_mm)
-        for k, name in enumerate(VIEWS):
-            path = view_path(name, pinhole)
+        views = rig_views(scene.rig)
+        names = [name for name, _ in views]
+        pose = self._pose
+        for k, (name, uv) in enumerate(zip(names, frame.uv, strict=True)):
             if images and frame.images is not None and pinhole:
                 self.stream.log(image_path(name), self._image(frame.images[k]))
-            uv = np.asarray(frame.uv_front if k == 0 else frame.uv_side, dtype=float)
+            uv = np.asarray(uv, dtype=float)
             found = np.all(np.isfinite(uv), axis=-1)
             self.stream.log(
-                f"{path}/segmented",
-                rr.Points2D(uv[found], colors=[SEGMENTED_COLOR], radii=[3.0 if pinhole else 0.3]),
+                f"{view_path(name, pinhole)}/segmented",
+                rr.LineStrips2D(
+                    rings_2d(uv[found], RING_RADIUS[pinhole]),
+                    colors=[SEGMENTED_COLOR],
+                    radii=[RING_LINE],
+                ),
             )
         if observation is not None and observation.markers_b_mm is not None:
             points_b = np.vstack([observation.tip_b_mm, observation.markers_b_mm])
             points_b = points_b[np.all(np.isfinite(points_b), axis=-1)]
             self.stream.log(
                 MARKERS_3D,
-                rr.Points3D(points_b @ R_w_b.T + o_b_w, colors=[SEGMENTED_COLOR], radii=[0.4]),
+                rr.Points3D(pose.world_from_base(points_b), colors=[SEGMENTED_COLOR], radii=[0.5]),
             )
         q = np.asarray(frame.q, dtype=float)
         catheter = scene.catheter
-        if frame.delta_L_true_rad is not None and np.isfinite(frame.delta_L_true_rad):
-            truth_w = catheter.backbone(q, frame.delta_L_true_rad, self._s) @ R_w_b.T + o_b_w
+        truth = frame.delta_L_true_rad
+        if truth is not None and np.isfinite(truth):
+            # Dots along the backbone: the estimate's line stays visible where they agree.
+            truth_w = pose.world_from_base(catheter.backbone(q, truth, self._truth_s))
             self.stream.log(
-                CATHETER_TRUTH, rr.LineStrips3D([truth_w], colors=[TRUTH_COLOR], radii=[0.15])
+                CATHETER_TRUTH, rr.Points3D(truth_w, colors=[TRUTH_COLOR], radii=[0.45])
             )
+            self.stream.log(
+                DIAL_TRUTH,
+                rr.LineStrips2D(
+                    dial_needle(q[0] + truth, math.inf, 1.15)[:1],
+                    colors=[TRUTH_COLOR],
+                    radii=[-3.0],
+                    draw_order=DIAL_ORDER - 1,  # under the methods' needles
+                ),
+            )
+        self._log_dials(estimates)
         primary = self.primary or next(iter(estimates), None)
         estimate = estimates.get(primary) if primary is not None else None
         if estimate is None or not estimate.valid:
-            self._clear_estimate(pinhole)
+            self._clear_estimate(names, pinhole)
             return
-        backbone_w = catheter.backbone(q, estimate.delta_L_rad, self._s) @ R_w_b.T + o_b_w
+        color = method_color(primary)
+        backbone_b = catheter.backbone(q, estimate.delta_L_rad, self._s)
         self.stream.log(
             CATHETER_ESTIMATE,
-            rr.LineStrips3D([backbone_w], colors=[ESTIMATE_COLOR], radii=[0.3]),
+            rr.LineStrips3D(
+                [pose.world_from_base(backbone_b)], colors=[color], radii=[0.3], labels=[primary]
+            ),
+        )
+        vertices_w, triangles = bending_plane_w(backbone_b, pose)
+        self.stream.log(
+            BENDING_PLANE,
+            rr.Mesh3D(
+                vertex_positions=vertices_w,
+                triangle_indices=triangles,
+                albedo_factor=(*color, PLANE_ALPHA),
+            ),
         )
         # Where the tip would be for delta_L within +/-2 sigma: an arc about the base axis.
         spread = min(2.0 * estimate.std_rad, np.pi)
@@ -410,49 +373,164 @@ class RerunSink:
         tip_b = catheter.tip(np.broadcast_to(q, (arc.size, 3)), arc)
         self.stream.log(
             TIP_UNCERTAINTY,
-            rr.LineStrips3D([tip_b @ R_w_b.T + o_b_w], colors=[ESTIMATE_COLOR], radii=[0.1]),
+            rr.LineStrips3D([pose.world_from_base(tip_b)], colors=[color], radii=[0.15]),
         )
         vertices_w, triangles = plane_fan_w(
-            catheter, q, estimate.delta_L_rad, estimate.std_rad, R_w_b, o_b_w
+            catheter, q, estimate.delta_L_rad, estimate.std_rad, pose.R_w_b, pose.o_b_w_mm
         )
         self.stream.log(
             PLANE_FAN,
             rr.Mesh3D(
-                vertex_positions=vertices_w, triangle_indices=triangles, albedo_factor=FAN_COLOR
+                vertex_positions=vertices_w,
+                triangle_indices=triangles,
+                albedo_factor=(*color, FAN_ALPHA),
+            ),
+        )
+        # Its outline, so that a narrow fan (a certain estimate) still shows.
+        self.stream.log(
+            PLANE_FAN_EDGE,
+            rr.LineStrips3D(
+                [np.vstack([vertices_w, vertices_w[:1]])], colors=[color], radii=[0.08]
             ),
         )
         arclengths = np.array((catheter.length_mm, *catheter.marker_arclengths_mm))
-        points_w = catheter.backbone(q, estimate.delta_L_rad, arclengths) @ R_w_b.T + o_b_w
-        for name, view in zip(VIEWS, (scene.rig.front, scene.rig.side), strict=True):
+        points_w = pose.world_from_base(catheter.backbone(q, estimate.delta_L_rad, arclengths))
+        for name, view in views:
             try:
                 uv = view.project(points_w)
             except ValueError:  # a point behind a camera: nothing to draw
                 continue
             self.stream.log(
                 f"{view_path(name, pinhole)}/reprojected",
-                rr.Points2D(uv, colors=[REPROJECTED_COLOR], radii=[2.0 if pinhole else 0.2]),
+                rr.Points2D(uv, colors=[color], radii=[DOT_RADIUS]),
             )
 
+    def _log_dials(self, estimates: Mapping[str, Estimate]) -> None:
+        """A needle at delta_1 = q_r + delta_L with its +/-2 sigma arc per method (nested
+        radii, in the order given), cleared when the method has no estimate."""
+        for k, (method, estimate) in enumerate(estimates.items()):
+            if estimate is None or not estimate.valid:
+                self.stream.log(dial_path(method), rr.Clear(recursive=False))
+                continue
+            strips = dial_needle(
+                estimate.q_r_rad + estimate.delta_L_rad, estimate.std_rad, 1.0 - 0.12 * k
+            )
+            self.stream.log(
+                dial_path(method),
+                rr.LineStrips2D(
+                    strips, colors=[method_color(method)], radii=[-1.5], draw_order=DIAL_ORDER + k
+                ),
+            )
+
+    # ---------------------------------------------------------------- series
+    def _series_values(
+        self,
+        method: str,
+        estimates: Sequence[Estimate],
+        truth_rad: Array,
+        truth_unwrapped_rad: Array,
+    ) -> dict[str, Array]:
+        """Every series value of a method's estimates (one row each; NaN: nothing there).
+
+        delta_L is unwrapped against the unwrapped truth (or the method's previous value),
+        the band and the error band need a finite 2 sigma below 180 deg, the error needs the
+        truth, NIS per dof and its band need a NIS.
+        """
+        unwrap = self._unwrap.setdefault(method, _Unwrap())
+        n = len(estimates)
+        delta = np.fromiter((e.delta_L_rad if e.valid else np.nan for e in estimates), float, n)
+        std = np.fromiter((e.std_rad if e.valid else np.nan for e in estimates), float, n)
+        nis = np.fromiter((np.nan if e.nis is None else e.nis for e in estimates), float, n)
+        dof = np.fromiter((e.nis_dof for e in estimates), float, n)
+        unwrapped = np.array(
+            [unwrap(float(d), float(r)) for d, r in zip(delta, truth_unwrapped_rad, strict=True)]
+        )
+        value_deg = np.degrees(unwrapped)
+        two_sigma_deg = np.degrees(2.0 * std)
+        two_sigma_deg[~(two_sigma_deg < 180.0)] = np.nan
+        error_deg = np.degrees(wrap_angle(delta - np.asarray(truth_rad, dtype=float)))
+        has_error = np.isfinite(error_deg)
+        has_nis = np.isfinite(nis) & (dof > 0)
+        dof_safe = np.where(has_nis, dof, 1.0)
+        nis_per_dof = np.where(has_nis, nis / dof_safe, np.nan)
+        low, high = (np.where(has_nis, chi2.ppf(p, dof_safe) / dof_safe, np.nan) for p in NIS_BAND)
+        return {
+            delta_L_path(method): value_deg,
+            band_path(method, "plus"): value_deg + two_sigma_deg,
+            band_path(method, "minus"): value_deg - two_sigma_deg,
+            error_path(method): error_deg,
+            error_band_path(method, "plus"): np.where(has_error, two_sigma_deg, np.nan),
+            error_band_path(method, "minus"): np.where(has_error, -two_sigma_deg, np.nan),
+            nis_path(method): nis_per_dof,
+            nis_band_path(method, "low"): low,
+            nis_band_path(method, "high"): high,
+        }
+
+    def _truth_at(self, time_s: float, truth_rad: float | None) -> float:
+        """The unwrapped truth at a frame time (rad, NaN unknown), logged once per frame."""
+        if self._truth_time_s == time_s:
+            return self._truth_unwrapped_rad
+        self._truth_time_s = time_s
+        truth = math.nan if truth_rad is None else float(truth_rad)
+        self._truth_unwrapped_rad = self._truth_unwrap(truth)
+        if math.isfinite(truth):
+            self.stream.log(DELTA_L_TRUTH, rr.Scalars(np.degrees(self._truth_unwrapped_rad)))
+        return self._truth_unwrapped_rad
+
     def log_estimate(self, name: str, estimate: Estimate, truth_rad: float | None = None) -> None:
-        """One method's estimate as time series (degrees): delta_L, +/-2 sigma, error, NIS."""
+        """One method's estimate as time series: delta_L unwrapped with its +/-2 sigma band
+        (deg), the error with its +/-2 sigma (deg), NIS per dof with its chi-square band.
+
+        An invalid estimate leaves a gap in the lines."""
         self._style_method(name)
         self.set_time(estimate.time_s)
-        if not estimate.valid:
-            return
-        value = np.degrees(estimate.delta_L_rad)
-        self.stream.log(delta_L_path(name), rr.Scalars(value))
-        if np.isfinite(estimate.std_rad) and estimate.std_rad < np.pi:
-            two_sigma = 2 * np.degrees(estimate.std_rad)
-            self.stream.log(band_path(name, "plus"), rr.Scalars(value + two_sigma))
-            self.stream.log(band_path(name, "minus"), rr.Scalars(value - two_sigma))
-        if truth_rad is not None and np.isfinite(truth_rad):
-            if self._truth_time_s != estimate.time_s:  # once per frame, whatever the methods
-                self._truth_time_s = estimate.time_s
-                self.stream.log(f"{SERIES_DELTA_L}/truth", rr.Scalars(np.degrees(truth_rad)))
-            error = np.degrees(wrap_angle(estimate.delta_L_rad - truth_rad))
-            self.stream.log(error_path(name), rr.Scalars(error))
-        if estimate.nis is not None and np.isfinite(estimate.nis):
-            self.stream.log(nis_path(name), rr.Scalars(estimate.nis))
+        truth_unwrapped = self._truth_at(estimate.time_s, truth_rad)
+        truth = np.array([math.nan if truth_rad is None else truth_rad], dtype=float)
+        values = self._series_values(name, [estimate], truth, np.array([truth_unwrapped]))
+        for path, value in values.items():
+            is_nis = path.startswith(nis_path(name))
+            if is_nis and not np.isfinite(value[0]):
+                continue  # points, not lines: nothing to break
+            self.stream.log(path, rr.Scalars(float(value[0])))
+
+    def log_series(
+        self,
+        name: str,
+        estimates: Sequence[Estimate],
+        truth_rad: Array | None = None,
+    ) -> None:
+        """A whole replay of one method at once (columns; the same series as log_estimate)."""
+        self._style_method(name)
+        t = np.array([e.time_s for e in estimates], dtype=float)
+        truth = np.full(t.size, np.nan) if truth_rad is None else np.asarray(truth_rad, dtype=float)
+        unwrap_truth = _Unwrap()
+        truth_unwrapped = np.array([unwrap_truth(float(x)) for x in truth])
+        if not self._truth_logged and np.isfinite(truth).any():
+            self._truth_logged = True
+            self._style_truth()
+            self._columns(DELTA_L_TRUTH, t, np.degrees(truth_unwrapped))
+        for path, values in self._series_values(name, estimates, truth, truth_unwrapped).items():
+            if path.startswith(nis_path(name)):
+                keep = np.isfinite(values)
+                self._columns(path, t[keep], values[keep])
+            else:
+                self._columns(path, t, values)
+
+    def log_joints(self, time_s: Array, q: Array) -> None:
+        """Joint values over time (columns): q_r in deg, q_p and q_d in mm."""
+        if not self._joints_styled:
+            self._joints_styled = True
+            for joint, color in JOINT_COLORS.items():
+                self.stream.log(
+                    joint_path(joint),
+                    rr.SeriesLines(colors=[color], names=[joint]),
+                    static=True,
+                )
+        t = np.asarray(time_s, dtype=float)
+        q = np.asarray(q, dtype=float).reshape(-1, 3)
+        for k, joint in enumerate(JOINT_COLORS):
+            values = np.degrees(q[:, k]) if k == 0 else q[:, k]
+            self._columns(joint_path(joint), t, values)
 
     def log_live(
         self,
@@ -481,38 +559,8 @@ class RerunSink:
         if frames_predict_only is not None:
             self.stream.log(FRAMES_PREDICT_ONLY, rr.Scalars(float(frames_predict_only)))
 
-    def log_series(
-        self,
-        name: str,
-        estimates: Sequence[Estimate],
-        truth_rad: Array | None = None,
-    ) -> None:
-        """A whole replay of one method at once (columns; the same series as log_estimate)."""
-        self._style_method(name)
-        t = np.array([e.time_s for e in estimates], dtype=float)
-        value = np.degrees(np.array([e.delta_L_rad for e in estimates], dtype=float))
-        std = np.degrees(np.array([e.std_rad for e in estimates], dtype=float))
-        valid = np.isfinite(value) & np.isfinite(std)
-        self._columns(delta_L_path(name), t[valid], value[valid])
-        banded = valid & (std < 180.0)
-        self._columns(band_path(name, "plus"), t[banded], value[banded] + 2 * std[banded])
-        self._columns(band_path(name, "minus"), t[banded], value[banded] - 2 * std[banded])
-        if truth_rad is not None:
-            truth = np.asarray(truth_rad, dtype=float)
-            known = valid & np.isfinite(truth)
-            error = np.degrees(wrap_angle(np.radians(value[known]) - truth[known]))
-            self._columns(error_path(name), t[known], error)
-            if not self._truth_logged:
-                self._truth_logged = True
-                have = np.isfinite(truth)
-                self._columns(f"{SERIES_DELTA_L}/truth", t[have], np.degrees(truth[have]))
-        nis = np.array([np.nan if e.nis is None else e.nis for e in estimates], dtype=float)
-        has_nis = np.isfinite(nis)
-        if has_nis.any():
-            self._columns(nis_path(name), t[has_nis], nis[has_nis])
-
     def _columns(self, path: str, t: Array, values: Array) -> None:
-        if t.size == 0:
+        if t.size == 0 or not np.isfinite(values).any():
             return
         self.stream.send_columns(
             path,
@@ -540,80 +588,8 @@ class RerunSink:
         return delivered
 
 
-# ------------------------------------------------------------------------------ live loop
-def _report_stderr(message: str) -> None:
-    print(f"cathtrack: {message}", file=sys.stderr, flush=True)
-
-
-def parse_viewer_url(url: str) -> tuple[str, int]:
-    """Host and port of a rerun gRPC URL (``rerun+http://127.0.0.1:9876/proxy``)."""
-    parts = urlsplit(url)
-    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname:
-        raise ValueError(
-            f"not a rerun viewer URL: {url!r} (expected e.g. {DEFAULT_VIEWER_URL})"
-        )
-    port = parts.port
-    if port is None:
-        port = 443 if parts.scheme in ("rerun", "rerun+https") else 80
-    return parts.hostname, port
-
-
-def viewer_reachable(url: str, timeout_s: float = 0.5) -> tuple[bool, str]:
-    """Whether something accepts TCP connections at a viewer URL, and why not.
-
-    rerun's own connection does not say: it blocks for seconds and then drops the data
-    silently when nothing listens.
-    """
-    host, port = parse_viewer_url(url)
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            return True, ""
-    except OSError as exc:
-        return False, exc.strerror or str(exc) or type(exc).__name__
-
-
-class ViewerWatch:
-    """Checks in a background thread that a gRPC viewer still accepts connections.
-
-    ``lost`` turns True when a check fails and False again when one succeeds.
-
-    Parameters
-    ----------
-    url : str
-    interval_s, timeout_s : float
-    """
-
-    def __init__(self, url: str, interval_s: float = 1.0, timeout_s: float = 0.5) -> None:
-        self.url = url
-        self.interval_s = float(interval_s)
-        self.timeout_s = float(timeout_s)
-        self.lost = False
-        self.reason = ""
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="viewer-watch", daemon=True)
-
-    def start(self) -> ViewerWatch:
-        self._thread.start()
-        return self
-
-    def check(self) -> bool:
-        """One check now; True when the viewer is reachable."""
-        ok, reason = viewer_reachable(self.url, self.timeout_s)
-        self.lost, self.reason = not ok, reason
-        return ok
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval_s):
-            self.check()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(self.interval_s + self.timeout_s + 1.0)
-
-
 class LiveViewerSink:
-    """The rerun output as a live-loop sink (:mod:`tracker.live.loop`).
+    """The rerun output as a live-loop sink (:mod:`tracker.live.sinks`).
 
     Per frame: the 3-D scene at the estimate with the +/-2 sigma fan, the segmented and
     reprojected markers, the images (every ``image_every``-th frame), the series of delta_L,
@@ -674,7 +650,7 @@ class LiveViewerSink:
         self._predict_only = 0
         self._lost_reported = False
 
-    def handle(self, frame, observation, estimate, latency_s, status=0) -> None:
+    def handle(self, frame, observation, estimate, latency_s, status=LiveStatus.NONE) -> None:
         if self.truth is not None and frame.delta_L_true_rad is None:
             truth = self.truth(frame.time_s)
             if truth is not None:
@@ -683,8 +659,7 @@ class LiveViewerSink:
         self.frames += 1
         self.viewer.log_frame(frame, observation, {self.method: estimate}, self.scene, images)
         self.viewer.log_estimate(self.method, estimate, frame.delta_L_true_rad)
-        # LiveStatus: STALE_JOINTS = 1, NO_JOINTS = 2 (the estimator only predicted).
-        self._predict_only += bool(int(status) & 3)
+        self._predict_only += bool(status & PREDICT_ONLY)
         dropped = None if self.summary is None else self.summary.frames_dropped
         self.viewer.log_live(frame.time_s, latency_s, dropped, self._predict_only)
         self._check_watch()
@@ -710,125 +685,3 @@ class LiveViewerSink:
         lost = self.watch is not None and self.watch.lost
         if self.close_stream and not self.viewer.close(timeout_s=1.0 if lost else 5.0):
             self.report("the rerun output did not take everything logged before closing")
-
-
-# ---------------------------------------------------------------------- command line
-def add_rerun_args(parser, save_default: str | None = None) -> None:
-    """The usual rerun flags (``rr.script_add_args``) in an argument group, and ``--spawn``.
-
-    ``--save PATH`` writes an ``.rrd``; ``--connect`` (to ``--url``, default
-    127.0.0.1:9876) logs to a running viewer; ``--spawn`` starts one; ``--serve`` hosts a
-    gRPC server for viewers to connect to (``rerun rerun+http://127.0.0.1:9876/proxy``), and a
-    web viewer too when it is bound beyond loopback and not ``--headless``. They combine:
-    ``--save`` next to a viewer writes the file too. ``--stdout`` is not supported (the
-    commands print their results there).
-    """
-    group = parser.add_argument_group("rerun output")
-    rr.script_add_args(group)
-    group.add_argument(
-        "--spawn", action="store_true", help="start a rerun viewer and log to it"
-    )
-    if save_default is not None:
-        parser.set_defaults(save=save_default)
-
-
-@dataclass
-class RerunOutput:
-    """Where a command's rerun stream goes (:func:`open_rerun_output`)."""
-
-    stream: rr.RecordingStream
-    targets: list[str]  # human-readable, e.g. "file out/demo.rrd"
-    rrd_path: Path | None = None
-    viewer_url: str | None = None  # a gRPC viewer logged to (connected or spawned)
-    served_url: str | None = None  # the gRPC server web viewers connect to
-
-    def watch(self) -> ViewerWatch | None:
-        """A started :class:`ViewerWatch` of the viewer logged to, if any."""
-        return None if self.viewer_url is None else ViewerWatch(self.viewer_url).start()
-
-
-def open_rerun_output(
-    args,
-    application_id: str = "cathtrack",
-    *,
-    blueprint: rrb.Blueprint | None = None,
-    recording_id: str | None = None,
-    bind: str = LOOPBACK,
-    report: Callable[[str], None] = _report_stderr,
-) -> RerunOutput | None:
-    """Open the rerun outputs the flags of :func:`add_rerun_args` ask for (None: none).
-
-    Like ``rr.script_setup``, but on an explicit :class:`rerun.RecordingStream` rather than
-    the global one, with several outputs at once (``rr.RecordingStream.set_sinks``), the
-    gRPC server bound to ``bind`` (loopback by default, not every interface; rerun's web
-    viewer, which listens on every interface, only when ``bind`` is not loopback), and a viewer
-    that is not running reported once (``report``) instead of blocking the command for
-    seconds and losing the data silently: the command goes on without it.
-
-    Raises
-    ------
-    ValueError
-        ``--stdout``, or a malformed ``--url``.
-    OSError
-        The ``.rrd`` file cannot be created.
-    """
-    if getattr(args, "stdout", False):
-        raise ValueError("--stdout is not supported: use --save PATH, --connect or --serve")
-    sinks: list = []
-    targets: list[str] = []
-    output = {}
-    save = getattr(args, "save", None)
-    if save:
-        path = Path(save)
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(path))
-        except Exception as exc:  # rerun raises its own error types for unwritable files
-            raise OSError(f"cannot write the rerun recording {path}: {exc}") from None
-        targets.append(f"file {path}")
-        output["rrd_path"] = path
-    url = None
-    if getattr(args, "spawn", False):
-        try:
-            rr.spawn(port=DEFAULT_VIEWER_PORT, connect=False)
-            url = DEFAULT_VIEWER_URL
-        except Exception as exc:  # no rerun executable, no display...
-            report(f"cannot start a rerun viewer ({exc}); going on without it")
-    if getattr(args, "connect", False) or getattr(args, "url", None):
-        url = args.url or DEFAULT_VIEWER_URL
-    if url is not None:
-        reachable, reason = viewer_reachable(url)
-        if reachable:
-            sinks.append(rr.GrpcSink(url))
-            targets.append(f"viewer {url}")
-            output["viewer_url"] = url
-        else:
-            report(f"no rerun viewer at {url} ({reason}); going on without it")
-    server = None
-    if getattr(args, "serve", False):
-        server = rr.GrpcServerSink(bind_ip=bind, port=DEFAULT_VIEWER_PORT)
-        sinks.append(server)
-        targets.append(f"server {server.uri}")
-        output["served_url"] = server.uri
-    if not sinks:
-        return None
-    stream = rr.RecordingStream(application_id, recording_id=recording_id)
-    stream.set_sinks(*sinks, default_blueprint=blueprint)
-    if server is not None and bind != LOOPBACK and not args.headless:
-        # rerun's web-viewer HTTP server listens on every interface: only when asked to serve
-        # beyond this machine. On loopback, `rerun <uri>` (or the hosted web viewer) connects.
-        rr.serve_web_viewer(open_browser=True, connect_to=server.uri)
-        targets.append("web viewer on port 9090")
-    return RerunOutput(stream, targets, **output)
-
-
-def file_stream(
-    path,
-    application_id: str = "cathtrack",
-    recording_id: str | None = None,
-    blueprint: rrb.Blueprint | None = None,
-) -> rr.RecordingStream:
-    """A recording stream that writes a ``.rrd`` file (call before logging anything)."""
-    stream = rr.RecordingStream(application_id, recording_id=recording_id)
-    stream.save(str(path), default_blueprint=blueprint)
-    return stream

@@ -1,4 +1,4 @@
-"""Calibration of a two-camera (bi-plane) rig from checkerboard images (DESIGN.md section 4).
+"""Calibration of a two-camera (bi-plane) rig from checkerboard images (docs/design.md section 4).
 
 1. Each camera alone: Zhang's method (``cv2.calibrateCamera``) on the checkerboard corners
    found in its images (``cv2.findChessboardCorners`` refined by ``cv2.cornerSubPix``).
@@ -7,8 +7,8 @@
 3. The world frame {W}: the board of one pair seen by both cameras (by default the first);
    optionally moved by a known board pose, e.g. a fiducial registered to the catheter base.
 
-The result is written as a rig file (TOML, docs/vision.md) that
-:func:`models.rig_file.load_rig` reads back into a :class:`models.imaging.BiplaneRig`,
+The result is written as a rig file (TOML, docs/vision.md, :func:`models.rig_file.rig_toml`)
+that :func:`models.rig_file.load_rig` reads back into a :class:`models.imaging.Rig`,
 with the per-view and total reprojection errors.
 """
 
@@ -21,8 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from models.imaging import BiplaneRig, PinholeView
-from models.rig_file import RIG_FORMAT, RIG_VERSION
+from models.imaging import PinholeView, Rig, default_view_names
+from models.rig_file import rig_toml
 
 Array = np.ndarray
 
@@ -191,26 +191,29 @@ class RigCalibration:
 
     Attributes
     ----------
-    rig : BiplaneRig
-        Pinhole front and side views in {W}.
-    front, side : CameraCalibration
+    rig : Rig
+        Pinhole views in {W}, named as calibrated.
+    cameras : tuple of CameraCalibration
+        Each view's own calibration, in the rig's order.
     stereo_rms_px : float
-        Reprojection error of the pair fit (both cameras, fixed intrinsics), px.
+        Reprojection error of the pair fits of every view with the first (fixed intrinsics),
+        px.
     total_rms_px : float
-        RMS reprojection error over every corner of both cameras' calibrations, px.
-    pairs : tuple of int
-        Image indices where both cameras saw the board consistently (used in the pair fit).
+        RMS reprojection error over every corner of every camera's calibration, px.
+    pairs : tuple of tuple of int
+        For each view after the first, the image indices where it and the first view saw the
+        board consistently (used in its pair fit).
     world_pair : int
-        The image index whose board defines {W} (before ``R_w_board``, ``o_board_w_mm``).
+        The image index whose board, seen by every camera, defines {W} (before
+        ``R_w_board``, ``o_board_w_mm``).
     pattern, square_mm : the board.
     """
 
-    rig: BiplaneRig
-    front: CameraCalibration
-    side: CameraCalibration
+    rig: Rig
+    cameras: tuple[CameraCalibration, ...]
     stereo_rms_px: float
     total_rms_px: float
-    pairs: tuple[int, ...]
+    pairs: tuple[tuple[int, ...], ...]
     world_pair: int
     pattern: tuple[int, int]
     square_mm: float
@@ -226,125 +229,153 @@ def _angle_between(R_a: Array, R_b: Array) -> float:
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
+def _pair_fit(
+    ref: CameraCalibration,
+    other: CameraCalibration,
+    corners_ref: Sequence[Array | None],
+    corners_other: Sequence[Array | None],
+    pattern: tuple[int, int],
+    square_mm: float,
+    reference_image: int,
+) -> tuple[float, Array, Array, tuple[int, ...]]:
+    """Pose of ``other`` relative to ``ref`` from the images where both saw the board:
+    ``(stereo RMS px, R_o_r, t_o_r, images used)``."""
+    pairs = [i for i in ref.used if i in other.used]
+    obj = board_points(pattern, square_mm)
+    idx_r = {i: k for k, i in enumerate(ref.used)}
+    # Board poses of each pair in each camera; a board listed from the opposite corner by
+    # one camera (a 180-degree ambiguity of symmetric boards) is re-listed to agree.
+    relative = []
+    for i in pairs:
+        R_r = ref.R_cam_board[idx_r[i]]
+        candidates = []
+        for pts in (corners_other[i], _reversed_board(corners_other[i])):
+            _, rv, _ = cv2.solvePnP(obj, pts, other.K, other.dist)
+            candidates.append((cv2.Rodrigues(rv)[0] @ R_r.T, pts))
+        relative.append(candidates)
+    # The reference orientation: the one most pairs agree with.
+    best_votes, reference = -1, None
+    for cand in relative[pairs.index(reference_image)]:
+        votes = sum(
+            min(_angle_between(cand[0], c[0]) for c in cands) < np.radians(5)
+            for cands in relative
+        )
+        if votes > best_votes:
+            best_votes, reference = votes, cand[0]
+    # Pairs whose relative pose disagrees with the others (a board seen from behind, a
+    # wrong detection) are left out of the pair fit.
+    chosen, used = [], []
+    for i, cands in zip(pairs, relative, strict=True):
+        angles = [_angle_between(reference, c[0]) for c in cands]
+        k = int(np.argmin(angles))
+        if angles[k] < np.radians(5.0):
+            chosen.append(cands[k][1])
+            used.append(i)
+    obj32 = obj.astype(np.float32)
+    stereo = cv2.stereoCalibrate(
+        [obj32] * len(used),
+        [corners_ref[i].astype(np.float32).reshape(-1, 1, 2) for i in used],
+        [c.astype(np.float32).reshape(-1, 1, 2) for c in chosen],
+        ref.K, ref.dist, other.K, other.dist, ref.image_size,
+        flags=cv2.CALIB_FIX_INTRINSIC,
+    )
+    return float(stereo[0]), stereo[5], np.asarray(stereo[6], float).reshape(3), tuple(used)
+
+
 def calibrate_rig(
-    front_images: Sequence[Array],
-    side_images: Sequence[Array],
+    images: Sequence[Sequence[Array]],
     pattern: tuple[int, int],
     square_mm: float,
     world_pair: int | None = None,
     R_w_board: Array | None = None,
     o_board_w_mm: Array | None = None,
     fix_aspect_ratio: bool = False,
+    names: Sequence[str] | None = None,
 ) -> RigCalibration:
-    """Calibrate both cameras and their relative pose; define {W} by a board seen by both.
+    """Calibrate every camera and its pose relative to the first; {W} from a board seen by all.
 
     Parameters
     ----------
-    front_images, side_images : sequences of uint8 arrays
-        Synchronised images: ``front_images[i]`` and ``side_images[i]`` are one pair.
+    images : sequence of sequences of uint8 arrays
+        One sequence per camera, synchronised: ``images[v][i]`` is image ``i`` of view ``v``.
     pattern : (cols, rows)
         Inner corners of the board.
     square_mm : float
     world_pair : int, optional
-        Index of the pair whose board defines {W}; default the first pair where both
-        cameras found it.
+        Index of the image whose board defines {W}; default the first one where every
+        camera found it.
     R_w_board, o_board_w_mm : arrays (3, 3), (3,), optional
         Pose of that board in the desired world frame (identity: {W} is the board).
     fix_aspect_ratio : bool
         Calibrate each camera with fx = fy.
+    names : sequence of str, optional
+        The views' names (:func:`models.imaging.default_view_names` by default).
 
     Raises
     ------
     ValueError
-        A clear message when the board is missing, too few views, no pair sees it in both.
+        A clear message when the board is missing, too few views, no image shows it to
+        every camera.
     """
-    if len(front_images) != len(side_images):
-        raise ValueError(
-            f"{len(front_images)} front and {len(side_images)} side images: they must be"
-            " synchronised pairs"
-        )
+    names = default_view_names(len(images)) if names is None else tuple(names)
+    if len(images) < 2 or len(names) != len(images):
+        raise ValueError(f"need images of two or more cameras, one name each; got {len(images)}")
+    counts = [len(view_images) for view_images in images]
+    if len(set(counts)) != 1:
+        listed = " and ".join(f"{n} {name}" for n, name in zip(counts, names, strict=True))
+        raise ValueError(f"{listed} images: they must be synchronised sets")
     # One camera after the other, so that a wrong --board fails after one folder.
-    corners_f = [find_corners(im, pattern) for im in front_images]
-    front = calibrate_camera(front_images, pattern, square_mm, fix_aspect_ratio, "front",
-                             corners_f)
-    corners_s = [find_corners(im, pattern) for im in side_images]
-    side = calibrate_camera(side_images, pattern, square_mm, fix_aspect_ratio, "side", corners_s)
-    pairs = tuple(i for i in front.used if i in side.used)
-    if not pairs:
+    corners, cameras = [], []
+    for name, view_images in zip(names, images, strict=True):
+        corners.append([find_corners(im, pattern) for im in view_images])
+        cameras.append(
+            calibrate_camera(view_images, pattern, square_mm, fix_aspect_ratio, name, corners[-1])
+        )
+    common = tuple(i for i in cameras[0].used if all(i in c.used for c in cameras[1:]))
+    if not common:
         raise ValueError(
-            "no image pair shows the checkerboard to both cameras: the world frame and the"
-            " relative pose need at least one board seen by both"
+            "no image shows the checkerboard to every camera: the world frame and the"
+            " relative poses need at least one board seen by all"
         )
     if world_pair is None:
-        world_pair = pairs[0]
-    if world_pair not in pairs:
+        world_pair = common[0]
+    if world_pair not in common:
         raise ValueError(
-            f"pair {world_pair} does not show the board to both cameras; pairs that do:"
-            f" {list(pairs)}"
+            f"image {world_pair} does not show the board to every camera; images that do:"
+            f" {list(common)}"
         )
-    # Board poses of each pair in each camera; a board listed from the opposite corner by
-    # one camera (a 180-degree ambiguity of symmetric boards) is re-listed to agree.
-    obj = board_points(pattern, square_mm)
-    idx_f = {i: k for k, i in enumerate(front.used)}
-    relative = []
-    for i in pairs:
-        R_f = front.R_cam_board[idx_f[i]]
-        candidates = []
-        for pts in (corners_s[i], _reversed_board(corners_s[i])):
-            _, rv, _ = cv2.solvePnP(obj, pts, side.K, side.dist)
-            R_s = cv2.Rodrigues(rv)[0]
-            candidates.append((R_s @ R_f.T, pts))
-        relative.append(candidates)
-    # The reference orientation: the one most pairs agree with.
-    best_votes, reference = -1, None
-    for cand in relative[pairs.index(world_pair)]:
-        R_ref = cand[0]
-        votes = sum(min(_angle_between(R_ref, c[0]) for c in cands) < np.radians(5) for cands in
-                    relative)
-        if votes > best_votes:
-            best_votes, reference = votes, R_ref
-    # Pairs whose relative pose disagrees with the others (a board seen from behind, a
-    # wrong detection) are left out of the pair fit.
-    chosen, stereo_pairs = [], []
-    for i, cands in zip(pairs, relative, strict=True):
-        angles = [_angle_between(reference, c[0]) for c in cands]
-        k = int(np.argmin(angles))
-        if angles[k] < np.radians(5.0):
-            chosen.append(cands[k][1])
-            stereo_pairs.append(i)
-    obj32 = obj.astype(np.float32)
-    stereo = cv2.stereoCalibrate(
-        [obj32] * len(stereo_pairs),
-        [corners_f[i].astype(np.float32).reshape(-1, 1, 2) for i in stereo_pairs],
-        [c.astype(np.float32).reshape(-1, 1, 2) for c in chosen],
-        front.K, front.dist, side.K, side.dist, front.image_size,
-        flags=cv2.CALIB_FIX_INTRINSIC,
-    )
-    stereo_rms, R_s_f, t_s_f = float(stereo[0]), stereo[5], np.asarray(stereo[6], float).reshape(3)
-    # {W} = the board of the world pair, then moved by the given board pose.
-    R_f_board = front.R_cam_board[idx_f[world_pair]]
-    t_f_board = front.t_cam_board[idx_f[world_pair]]
+    ref = cameras[0]
+    idx_r = {i: k for k, i in enumerate(ref.used)}
+    # {W} = the board of the world image, then moved by the given board pose.
+    R_r_board = ref.R_cam_board[idx_r[world_pair]]
+    t_r_board = ref.t_cam_board[idx_r[world_pair]]
     R_w_board = np.eye(3) if R_w_board is None else np.asarray(R_w_board, float)
     o_board_w = np.zeros(3) if o_board_w_mm is None else np.asarray(o_board_w_mm, float)
-    # x_f = R_f_board x_board + t_f_board and x_board = R_w_board^T (x_w - o_board_w).
-    R_f_w = R_f_board @ R_w_board.T
-    t_f_w = t_f_board - R_f_w @ o_board_w
-    R_s_w = R_s_f @ R_f_w
-    t_s_w = R_s_f @ t_f_w + t_s_f
-    rig = BiplaneRig(
-        PinholeView(front.K, R_f_w, t_f_w, front.dist, front.image_size),
-        PinholeView(side.K, R_s_w, t_s_w, side.dist, side.image_size),
-    )
-    n_f = len(front.used) * obj.shape[0]
-    n_s = len(side.used) * obj.shape[0]
-    total = np.sqrt((n_f * front.rms_px**2 + n_s * side.rms_px**2) / (n_f + n_s))
+    # x_r = R_r_board x_board + t_r_board and x_board = R_w_board^T (x_w - o_board_w).
+    R_r_w = R_r_board @ R_w_board.T
+    t_r_w = t_r_board - R_r_w @ o_board_w
+    views = [PinholeView(ref.K, R_r_w, t_r_w, ref.dist, ref.image_size)]
+    stereo_sq, stereo_n, pairs = 0.0, 0, []
+    for v in range(1, len(cameras)):
+        rms, R_o_r, t_o_r, used = _pair_fit(
+            ref, cameras[v], corners[0], corners[v], pattern, square_mm, world_pair
+        )
+        cam = cameras[v]
+        views.append(
+            PinholeView(cam.K, R_o_r @ R_r_w, R_o_r @ t_r_w + t_o_r, cam.dist, cam.image_size)
+        )
+        stereo_sq += len(used) * rms**2
+        stereo_n += len(used)
+        pairs.append(used)
+    n_corners = board_points(pattern, square_mm).shape[0]
+    n = [len(c.used) * n_corners for c in cameras]
+    total = np.sqrt(sum(k * c.rms_px**2 for k, c in zip(n, cameras, strict=True)) / sum(n))
     return RigCalibration(
-        rig=rig,
-        front=front,
-        side=side,
-        stereo_rms_px=stereo_rms,
+        rig=Rig(*views, names=names),
+        cameras=tuple(cameras),
+        stereo_rms_px=float(np.sqrt(stereo_sq / max(stereo_n, 1))),
         total_rms_px=float(total),
-        pairs=tuple(stereo_pairs),
+        pairs=tuple(pairs),
         world_pair=world_pair,
         pattern=tuple(pattern),
         square_mm=float(square_mm),
@@ -377,91 +408,62 @@ def read_images(files: Sequence[Path]) -> list[Array]:
 
 
 def calibrate_folders(
-    front_dir: str | Path,
-    side_dir: str | Path,
+    folders: Sequence[tuple[str, str | Path]],
     pattern: tuple[int, int],
     square_mm: float,
     fix_aspect_ratio: bool = False,
-) -> tuple[RigCalibration, list[Path], list[Path]]:
-    """:func:`calibrate_rig` on two folders of images paired by sorted file name."""
-    files_f = image_files(front_dir, "front")
-    files_s = image_files(side_dir, "side")
-    if len(files_f) != len(files_s):
+) -> tuple[RigCalibration, list[list[Path]]]:
+    """:func:`calibrate_rig` on one folder of images per view, ``(name, folder)`` in the rig's
+    order, images matched across folders by sorted file name."""
+    files = [image_files(folder, name) for name, folder in folders]
+    counts = [len(f) for f in files]
+    if len(set(counts)) != 1:
+        listed = " and ".join(f"{n} {name}" for n, (name, _) in zip(counts, folders, strict=True))
         raise ValueError(
-            f"{len(files_f)} front and {len(files_s)} side images: images are paired by"
-            " sorted file name, so both folders need the same number"
+            f"{listed} images: images are matched by sorted file name, so every folder needs"
+            " the same number"
         )
     calibration = calibrate_rig(
-        read_images(files_f), read_images(files_s), pattern, square_mm,
+        [read_images(f) for f in files],
+        pattern,
+        square_mm,
         fix_aspect_ratio=fix_aspect_ratio,
+        names=[name for name, _ in folders],
     )
-    return calibration, files_f, files_s
+    return calibration, files
 
 
 # ------------------------------------------------------------------------------- writing
-def _fmt(x: float) -> str:
-    return repr(float(x))
-
-
-def _vector(v: Array) -> str:
-    return "[" + ", ".join(_fmt(x) for x in np.asarray(v).reshape(-1)) + "]"
-
-
-def _matrix(M: Array) -> str:
-    return "[" + ", ".join(_vector(row) for row in np.asarray(M)) + "]"
-
-
-def rig_toml(
-    rig: BiplaneRig,
-    calibration: RigCalibration | None = None,
-    comment: str = "",
-) -> str:
-    """The text of a rig file for a pinhole rig (see docs/vision.md)."""
-    if rig.kind != "pinhole":
-        raise ValueError("only pinhole rigs are written; planes follow from their normals")
-    lines = []
-    if comment:
-        lines += [f"# {line}" for line in comment.splitlines()]
-    lines += [f'format = "{RIG_FORMAT}"', f"version = {RIG_VERSION}", ""]
-    if calibration is not None:
-        c = calibration
-        lines += [
-            "[calibration]",
-            f"board = [{c.pattern[0]}, {c.pattern[1]}]",
-            f"square_mm = {_fmt(c.square_mm)}",
-            f"pairs = {len(c.pairs)}",
-            f"world_pair = {c.world_pair}",
-            f"total_rms_px = {_fmt(c.total_rms_px)}",
-            f"stereo_rms_px = {_fmt(c.stereo_rms_px)}",
-            "",
-        ]
-    cams = {"front": rig.front, "side": rig.side}
-    for name, view in cams.items():
-        lines += [
-            f"[{name}]",
-            f"image_size = [{view.image_size[0]}, {view.image_size[1]}]",
-            f"K = {_matrix(view.K)}",
-            f"dist = {_vector(view.dist)}",
-            f"R_cam_w = {_matrix(view.R_cam_w)}",
-            f"t_cam_w = {_vector(view.t_cam_w)}",
-            f"normal_w = {_vector(-np.asarray(view.R_cam_w)[2])}",
-        ]
-        if calibration is not None:
-            cam = calibration.front if name == "front" else calibration.side
-            lines += [f"rms_px = {_fmt(cam.rms_px)}", f"images = {len(cam.used)}"]
-        lines.append("")
-    return "\n".join(lines)
+def calibration_tables(calibration: RigCalibration) -> dict[str, dict[str, object]]:
+    """The residuals of a calibration as rig-file tables (``extra`` of
+    :func:`models.rig_file.rig_toml`): ``[calibration]`` and each view's RMS and image count."""
+    c = calibration
+    tables: dict[str, dict[str, object]] = {
+        "calibration": {
+            "board": list(c.pattern),
+            "square_mm": float(c.square_mm),
+            "pairs": [len(p) for p in c.pairs],
+            "world_pair": int(c.world_pair),
+            "total_rms_px": float(c.total_rms_px),
+            "stereo_rms_px": float(c.stereo_rms_px),
+        }
+    }
+    for name, camera in zip(c.rig.names, c.cameras, strict=True):
+        tables[name] = {"rms_px": float(camera.rms_px), "images": len(camera.used)}
+    return tables
 
 
 def write_rig(
     path: str | Path,
-    rig: BiplaneRig,
+    rig: Rig,
     calibration: RigCalibration | None = None,
     comment: str = "",
 ) -> Path:
-    """Write a rig file; OSError if it cannot be written."""
+    """Write a rig file (:func:`models.rig_file.rig_toml`, with the calibration's residuals);
+    OSError if it cannot be written."""
     path = Path(path)
-    text = rig_toml(rig, calibration, comment)
+    extra = None if calibration is None else calibration_tables(calibration)
+    text = rig_toml(rig, comment=comment, extra=extra)
     try:
         path.write_text(text, encoding="utf-8")
     except OSError as exc:
@@ -469,25 +471,25 @@ def write_rig(
     return path
 
 
-def report_lines(
-    calibration: RigCalibration, names: tuple[str, str] = ("front", "side")
-) -> list[str]:
+def report_lines(calibration: RigCalibration) -> list[str]:
     """Human-readable summary: per-view and total reprojection errors, px."""
     c = calibration
     out = []
-    for label, cam in zip(names, (c.front, c.side), strict=True):
+    for label, cam in zip(c.rig.names, c.cameras, strict=True):
         K = cam.K
         out.append(
             f"{label}: {len(cam.used)} boards, RMS reprojection {cam.rms_px:.3f} px"
             f" (worst image {cam.per_image_rms_px.max():.3f} px); fx {K[0, 0]:.2f},"
             f" fy {K[1, 1]:.2f}, cx {K[0, 2]:.2f}, cy {K[1, 2]:.2f} px"
         )
-    baseline = np.linalg.norm(c.rig.front.center_w - c.rig.side.center_w)
-    n_f, n_s = c.rig.front.R_cam_w[2], c.rig.side.R_cam_w[2]
-    angle = np.degrees(np.arccos(np.clip(n_f @ n_s, -1.0, 1.0)))
-    out.append(
-        f"pair: {len(c.pairs)} boards seen by both, stereo RMS {c.stereo_rms_px:.3f} px,"
-        f" baseline {baseline:.1f} mm, {angle:.1f} deg between the optical axes"
-    )
+    ref = c.rig.views[0]
+    for name, view, used in zip(c.rig.names[1:], c.rig.views[1:], c.pairs, strict=True):
+        baseline = np.linalg.norm(ref.center_w - view.center_w)
+        cos = np.clip(ref.R_cam_w[2] @ view.R_cam_w[2], -1.0, 1.0)
+        out.append(
+            f"{c.rig.names[0]} and {name}: {len(used)} boards seen by both, baseline"
+            f" {baseline:.1f} mm, {np.degrees(np.arccos(cos)):.1f} deg between the optical axes"
+        )
+    out.append(f"pair fits: stereo RMS {c.stereo_rms_px:.3f} px")
     out.append(f"total RMS reprojection error {c.total_rms_px:.3f} px")
     return out

@@ -1,10 +1,14 @@
-"""Marker segmentation: images -> the 2-D points the estimators consume (DESIGN.md sections 4, 6).
+"""Marker segmentation of one view: image -> the 2-D points the estimators consume
+(docs/design.md sections 4, 6).
 
 The paper's approach, per view (:class:`Segmenter`):
 
 1. background subtraction against a prior image of the empty scene (the catheter is darker
-   than the scene: ``diff = background - image``), with a per-frame noise estimate from the
-   residual of the whole (mostly empty) image;
+   than the scene: ``diff = f(background) - image``), after a photometric normalisation: the
+   tone curve ``f`` (gain, offset, gamma) of the frame relative to the background, fitted
+   robustly on a grid of pixels (:mod:`tracker.vision.photometry`), whose residual is the
+   per-frame noise estimate; optionally only in a region around the catheter's predicted
+   image (with a search of the whole image when it is not found there);
 2. a threshold at a multiple of that noise, mask clean-up (closing, small blobs removed),
    and the catheter chosen as the blob nearest the registered base;
 3. the centreline: mask pixels ordered by their geodesic distance from the base along the
@@ -20,10 +24,8 @@ The paper's approach, per view (:class:`Segmenter`):
    band, must not run into the image border, and must be thinner than the base (the distal
    tube is); the mask must not touch or cross itself.
 
-Then per synchronised pair (:func:`segment_pair`, :class:`PairSegmenter`), with the rig: an
-epipolar check of every point found in both views, and the tip placed in 3-D from the tip
-band's centre (unbiased in both views however the tip points) and the catheter's tangent,
-which removes the bias of a single view's far end when the tip points toward a camera.
+Then per synchronised pair (:mod:`tracker.vision.pair`), with the rig: an epipolar check and
+the tip placed in 3-D from the tip band.
 
 Every point comes with a covariance propagated from the per-frame noise estimate through the
 centroid / end formulas (plus a small floor), and a flag saying what went wrong when a point
@@ -32,19 +34,15 @@ hidden marker, a view where the catheter overlaps itself) or one ``ValueError`` 
 (an image of the wrong size or type, an unreadable file), never a silent wrong point.
 
 Points are in px (distorted pixels of the camera, as :class:`models.imaging.PinholeView`
-expects them); :func:`frame_points` and :func:`segment_pair` map them onto the rows
-``[tip, marker_0, ...]`` of :class:`tracker.types.Frame`. Thresholds are
-:class:`SegmentationSettings`, read from the ``[segmentation]`` table of a TOML file
-(docs/vision.md).
+expects them); :func:`frame_points` maps them onto the rows ``[tip, marker_0, ...]`` of
+:class:`tracker.types.Frame`. Thresholds are
+:class:`tracker.vision.settings.SegmentationSettings`.
 """
 
 from __future__ import annotations
 
 import enum
-import tomllib
-from dataclasses import dataclass, fields
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -52,12 +50,10 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from models.catheter import Catheter
-from models.imaging import BiplaneRig
-from tracker.types import Frame
+from tracker.vision.photometry import BackgroundSamples, Photometry, fit_photometry
+from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 
 Array = np.ndarray
-
-SETTINGS_FORMAT = "cathtrack-segmentation"
 
 
 class SegmentationFlag(enum.IntFlag):
@@ -73,186 +69,9 @@ class SegmentationFlag(enum.IntFlag):
     FRAGMENTED = enum.auto()  # the catheter mask was in pieces, joined across a gap
     NOISY = enum.auto()  # the frame's noise estimate is above max_noise_gray
     OVERLAP = enum.auto()  # the catheter touches, crosses or folds onto itself: points withheld
-
-
-@dataclass(frozen=True)
-class SegmentationSettings:
-    """Tunable thresholds of the segmentation (TOML table ``[segmentation]``).
-
-    Parameters
-    ----------
-    threshold_sigma : float
-        Foreground if ``background - image`` exceeds this many noise standard deviations...
-    min_threshold_gray : float
-        ...and at least this many gray levels.
-    band_contrast : float
-        A pixel is part of a radio-opaque band if it blocks at least this fraction of the
-        background light, ``(background - image) / background``; between the tube's and the
-        bands' attenuation.
-    band_length_mm : float
-        Length of a marker band (used to predict where bands lie along the catheter).
-    min_area_px, min_band_area_px : int
-        Smallest catheter blob and smallest band, px.
-    closing_px : int
-        Side of the square closing kernel of the mask clean-up (0 or 1: none).
-    max_gap_px : float
-        Pieces of the catheter separated by at most this (an occluder) are joined.
-    base_search_px : float
-        The catheter must pass within this distance of the registered base.
-    border_px : float
-        A centreline end this close to the image border has left the image.
-    bin_px : float
-        Spacing of the centreline samples along the catheter.
-    end_slab_px : float
-        Longest slab behind an end cut used for the mass per unit length.
-    sigma_floor_px : float
-        Added in quadrature to every point's standard deviation (rendering and model errors
-        the noise propagation does not see).
-    max_noise_gray : float
-        Frames noisier than this are flagged NOISY.
-    noise_stride_px : int
-        Stride of the pixel grid the noise is estimated on.
-    overlap_ratio : float
-        A part of the mask this many times thicker than the typical tube (largest
-        inscribed disc), with 1.1 times this ratio more pixels per centreline sample, means
-        the catheter touches or crosses itself in the view (the proximal tube is only about
-        1.3 times the median in both).
-    max_tip_width_ratio : float
-        The tube at the tip band may be at most this fraction of its width at the base band
-        (the distal segment is thinner: 0.89 / 1.2 = 0.74); a wider far end means the
-        catheter folds back onto itself in the view. Set it above 1 for a catheter of one
-        diameter.
-    tip_band : bool
-        The catheter has a radio-opaque band at the tip: the far end of the centreline is
-        only taken as the tip when that band is there (otherwise: TIP_NOT_FOUND).
-    epipolar_gate_px : float
-        Pair check: a point's two rays may miss each other by at most this (or four
-        standard deviations of the point, if more), as reprojection residual, px.
-    tip_direction_sigma_rad : float
-        Uncertainty of the catheter's direction at the tip band (the image direction for a
-        single view's far end, the 3-D tangent when both views place the tip), rad.
-    """
-
-    threshold_sigma: float = 6.0
-    min_threshold_gray: float = 10.0
-    band_contrast: float = 0.6
-    band_length_mm: float = 1.0
-    min_area_px: int = 30
-    min_band_area_px: int = 3
-    closing_px: int = 3
-    max_gap_px: float = 30.0
-    base_search_px: float = 15.0
-    border_px: float = 2.0
-    bin_px: float = 3.0
-    end_slab_px: float = 2.0
-    sigma_floor_px: float = 0.05
-    max_noise_gray: float = 20.0
-    noise_stride_px: int = 8
-    overlap_ratio: float = 1.45
-    epipolar_gate_px: float = 3.0
-    max_tip_width_ratio: float = 0.88
-    tip_band: bool = True
-    tip_direction_sigma_rad: float = 0.05
-
-    def __post_init__(self) -> None:
-        positive = (
-            "threshold_sigma", "band_length_mm", "bin_px", "end_slab_px", "max_noise_gray",
-            "base_search_px", "overlap_ratio", "epipolar_gate_px", "max_tip_width_ratio",
-        )
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
-                raise ValueError(f"segmentation setting {name} must be positive, got {value!r}")
-        non_negative = (
-            "min_threshold_gray", "max_gap_px", "border_px", "sigma_floor_px",
-            "tip_direction_sigma_rad",
-        )
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"segmentation setting {name} must be >= 0, got {value!r}")
-        if not (isinstance(self.band_contrast, int | float) and 0 < self.band_contrast < 1):
-            raise ValueError(
-                "segmentation setting band_contrast must lie in (0, 1),"
-                f" got {self.band_contrast!r}"
-            )
-        for name in ("min_area_px", "min_band_area_px", "closing_px", "noise_stride_px"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise ValueError(
-                    f"segmentation setting {name} must be an integer >= 0, got {value!r}"
-                )
-        if not isinstance(self.tip_band, bool):
-            raise ValueError(
-                f"segmentation setting tip_band must be true or false, got {self.tip_band!r}"
-            )
-        if self.noise_stride_px < 1:
-            raise ValueError("segmentation setting noise_stride_px must be >= 1")
-
-
-def segmentation_settings_from_dict(
-    table: dict[str, Any], source: str = "settings"
-) -> SegmentationSettings:
-    """Settings from a parsed ``[segmentation]`` table; unknown keys are an error."""
-    if not isinstance(table, dict):
-        raise ValueError(f"{source}: [segmentation] must be a table")
-    known = {f.name for f in fields(SegmentationSettings)}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise ValueError(
-            f"{source}: unknown segmentation setting(s) {', '.join(unknown)};"
-            f" known: {', '.join(sorted(known))}"
-        )
-    try:
-        return SegmentationSettings(**table)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{source}: {exc}") from None
-
-
-def load_segmentation_settings(path: str | Path) -> SegmentationSettings:
-    """Read the ``[segmentation]`` table of a TOML settings file (defaults for missing keys)."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"cannot read settings file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: malformed TOML: {exc}") from None
-    fmt = data.get("format", SETTINGS_FORMAT)
-    if fmt != SETTINGS_FORMAT:
-        raise ValueError(f"{path}: 'format' must be \"{SETTINGS_FORMAT}\", got {fmt!r}")
-    return segmentation_settings_from_dict(data.get("segmentation", {}), str(path))
-
-
-# ----------------------------------------------------------------------------- image input
-def read_grayscale(path: str | Path) -> Array:
-    """An 8-bit grayscale image from a file, or one clear error (OSError) if unreadable."""
-    path = Path(path)
-    if not path.is_file():
-        raise OSError(f"cannot read image {path}: no such file")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise OSError(f"cannot read image {path}: not an image OpenCV can decode")
-    return image
-
-
-def check_image(image: Any, name: str = "image", shape: tuple[int, int] | None = None) -> Array:
-    """An 8-bit single-channel image (h, w) of the expected shape, or a ValueError saying why."""
-    if not isinstance(image, np.ndarray):
-        raise ValueError(f"{name} must be a numpy array, got {type(image).__name__}")
-    if image.dtype != np.uint8:
-        raise ValueError(f"{name} must be 8-bit (uint8) grayscale, got dtype {image.dtype}")
-    if image.ndim != 2:
-        raise ValueError(
-            f"{name} must be a single-channel (h, w) grayscale image, got shape {image.shape}"
-            " (convert colour images with cv2.cvtColor(..., cv2.COLOR_BGR2GRAY))"
-        )
-    if shape is not None and image.shape != tuple(shape):
-        raise ValueError(
-            f"{name} is {image.shape[1]}x{image.shape[0]} px, expected {shape[1]}x{shape[0]} px"
-            " (the size of the background image / camera)"
-        )
-    return image
+    EXPOSURE = enum.auto()  # the frame is black, saturated or far from the background's gain
+    CAMERA_MOVED = enum.auto()  # the frame is shifted from the background (re-registered)
+    BACKGROUND_LOST = enum.auto()  # the background no longer registers: take a new one
 
 
 # ------------------------------------------------------------------------------- results
@@ -290,6 +109,8 @@ class ViewSegmentation:
         Radius of the distal tube in the image, px (mass per unit length / contrast / 2).
     tip_width_ratio : float
         Width of the tube at the tip band over that at the base band (about 0.89 / 1.2).
+    photometry : Photometry, optional
+        The frame's tone curve and shift relative to its background.
     """
 
     flags: SegmentationFlag
@@ -309,6 +130,7 @@ class ViewSegmentation:
     tip_extent_px: float = float("nan")
     tube_radius_px: float = float("nan")
     tip_width_ratio: float = float("nan")
+    photometry: Photometry | None = None
 
     @property
     def tip_found(self) -> bool:
@@ -336,26 +158,6 @@ def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
 
 
 # ---------------------------------------------------------------------------- the segmenter
-def _noise_sigma(image: Array, background: Array, stride: int) -> float:
-    """Robust standard deviation of image - background on a sparse grid, gray levels.
-
-    The catheter covers a small part of the image: the median absolute difference ignores
-    it (0.6745 sigma for Gaussian noise about the static prior), and the root mean square of
-    the differences within four of those sigmas refines it. Integer differences: everything
-    comes from one histogram.
-    """
-    o = stride // 2
-    a = np.abs(image[o::stride, o::stride].astype(np.int16) - background[o::stride, o::stride])
-    hist = np.bincount(a.ravel(), minlength=256)
-    cdf = np.cumsum(hist)
-    mad = float(np.searchsorted(cdf, 0.5 * cdf[-1]))
-    clip = int(4.0 * max(1.4826 * mad, 1.0))
-    h = hist[: clip + 1].astype(np.float64)
-    v = np.arange(clip + 1, dtype=np.float64)
-    n = h.sum()
-    return float(np.sqrt((h @ v**2) / n)) if n > 10 else 1.4826 * mad
-
-
 def _ends_cut(
     xy: Array,
     w: Array,
@@ -397,6 +199,43 @@ def _weighted_centroid(xy: Array, w: Array, var_w: Array) -> tuple[Array, Array]
     return c, cov
 
 
+_SMOOTHED_NOISE = 0.375  # standard deviation of white noise after the 3 x 3 Gaussian
+_COARSE_NOISE = 0.273  # ... after cv2.pyrDown's 5 x 5 Gaussian ([1 4 6 4 1] / 16 each way)
+
+
+def smooth_for_detection(image: Array) -> Array:
+    """The image as the detection sees it: a 3 x 3 Gaussian ([1 2 1] / 4 each way). The
+    tube (4 px wide or more) keeps its contrast, white noise drops to 0.375 of itself."""
+    return cv2.GaussianBlur(image, (3, 3), 0)
+
+
+def detection_backgrounds(background: Array) -> tuple[Array, Array]:
+    """The background as the detection compares frames with it: smoothed
+    (:func:`smooth_for_detection`) and at half resolution (:func:`cv2.pyrDown`, the search
+    of the whole image)."""
+    return smooth_for_detection(background), cv2.pyrDown(background)
+
+
+def search_box(
+    points_px: Array, pad_px: float, shape: tuple[int, int]
+) -> tuple[int, int, int, int]:
+    """The region ``(x0, y0, x1, y1)`` around image points, padded and clipped to the image.
+
+    Non-finite points are left out; with none left (or ``pad_px <= 0``), the whole image.
+    """
+    height, width = shape
+    points = np.asarray(points_px, float).reshape(-1, 2)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if points.size == 0 or pad_px <= 0:
+        return (0, 0, width, height)
+    lo = np.floor(points.min(axis=0) - pad_px)
+    hi = np.ceil(points.max(axis=0) + pad_px) + 1
+    box = (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], width)), int(min(hi[1], height)))
+    if box[2] - box[0] < 2 or box[3] - box[1] < 2:
+        return (0, 0, width, height)
+    return box
+
+
 class Segmenter:
     """Segments one view of one catheter model.
 
@@ -409,7 +248,7 @@ class Segmenter:
     settings : SegmentationSettings
     """
 
-    def __init__(self, catheter: Catheter, settings: SegmentationSettings = SegmentationSettings()):
+    def __init__(self, catheter: Catheter, settings: SegmentationSettings = DEFAULT_SETTINGS):
         self.catheter = catheter
         self.settings = settings
         L = catheter.length_mm
@@ -428,7 +267,14 @@ class Segmenter:
 
     # ---------------------------------------------------------------- public
     def segment(
-        self, image: Array, background: Array, base_px: Array | None = None
+        self,
+        image: Array,
+        background: Array,
+        base_px: Array | None = None,
+        *,
+        photometry: Photometry | None = None,
+        search_px: Array | None = None,
+        prepared: tuple[Array, Array] | None = None,
     ) -> ViewSegmentation:
         """Segment one image against the prior image of the empty scene.
 
@@ -440,33 +286,87 @@ class Segmenter:
             The registered base projected into this view, px; it picks the catheter among
             the blobs and says which end is the base. Without it the base is the thicker end
             (the proximal segment is wider).
+        photometry : Photometry, optional
+            The frame's tone curve relative to the background, if already fitted
+            (:meth:`photometry`); fitted here otherwise.
+        search_px : array (n, 2), optional
+            Where the catheter is expected in the image (the last estimate's points
+            reprojected, or the last frame's centreline, with the base), px: only the region
+            around them, padded by ``roi_pad_px``, is searched, and the whole image when
+            the catheter is not found there or runs out of it.
+        prepared : pair of uint8 arrays, optional
+            ``detection_backgrounds(background)``, if kept from frame to frame.
+
+        Notes
+        -----
+        The whole image is searched at half resolution (both images smoothed by
+        :func:`cv2.pyrDown`: white noise drops to 0.27 of itself, the tube keeps its
+        contrast); the foreground at full resolution is then found in the region of the
+        blobs found there, or in the whole image if the catheter runs out of that region.
         """
         background = check_image(background, "background image")
         image = check_image(image, "image", background.shape)
-        s = self.settings
-        sigma = _noise_sigma(image, background, s.noise_stride_px)
-        flags = SegmentationFlag.NOISY if sigma > s.max_noise_gray else SegmentationFlag.NONE
-        diff = cv2.subtract(background, image)
-        threshold = max(s.threshold_sigma * sigma, s.min_threshold_gray)
-        _, mask = cv2.threshold(diff, threshold, 255, cv2.THRESH_BINARY)
-        picked = self._pick_blobs(mask, base_px)
-        if picked is None:
-            return self._empty(flags | SegmentationFlag.NO_CATHETER, sigma)
-        (x0, y0, x1, y1), base_ok = picked
+        if photometry is None:
+            photometry = self.photometry(image, background)
+        flags = self.photometry_flags(photometry)
+        if flags & (SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST):
+            return self.empty_result(flags, photometry)
+        height, width = image.shape
+        whole = (0, 0, width, height)
+        smoothed, coarse = detection_backgrounds(background) if prepared is None else prepared
+        found = None
+        if search_px is not None:
+            box = search_box(search_px, self.settings.roi_pad_px, image.shape)
+            found = self._find(image, smoothed, photometry, box, base_px)
+        if found is None:
+            box = self._coarse_box(image, coarse, photometry, base_px)
+            if box is not None:
+                found = self._find(image, smoothed, photometry, box, base_px)
+                if found is None and box != whole:
+                    found = self._find(image, smoothed, photometry, whole, base_px)
+        if found is None:
+            return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
+        roi, mask, base_ok = found
         if not base_ok:
             flags |= SegmentationFlag.BASE_NOT_FOUND
         return self._segment_roi(
-            image, background, diff, mask, (x0, y0, x1, y1), base_px if base_ok else None,
-            sigma, flags,
+            image, background, photometry, mask, roi, base_px if base_ok else None, flags
         )
 
+    def photometry(
+        self, image: Array, background: Array, samples: BackgroundSamples | None = None
+    ) -> Photometry:
+        """The frame's tone curve, shift and noise relative to the background (normalised
+        only if the settings say so); ``samples``: the background's on the grid, if kept."""
+        s = self.settings
+        return fit_photometry(
+            image, background, s.noise_stride_px, s.normalise, samples=samples
+        )
+
+    def photometry_flags(self, photometry: Photometry) -> SegmentationFlag:
+        """NOISY, EXPOSURE and CAMERA_MOVED as the settings judge the frame's photometry."""
+        s = self.settings
+        flags = SegmentationFlag.NONE
+        if not photometry.sigma_gray <= s.max_noise_gray:
+            flags |= SegmentationFlag.NOISY
+        if (
+            not photometry.fitted
+            or photometry.clipped_fraction > s.max_clipped_fraction
+            or not 1.0 / s.max_gain_change <= photometry.gain <= s.max_gain_change
+        ):
+            flags |= SegmentationFlag.EXPOSURE
+        if np.hypot(*photometry.shift_px) > s.camera_moved_px:
+            flags |= SegmentationFlag.CAMERA_MOVED
+        return flags
+
     # ---------------------------------------------------------------- steps
-    def _empty(self, flags: SegmentationFlag, sigma: float) -> ViewSegmentation:
+    def empty_result(self, flags: SegmentationFlag, photometry: Photometry) -> ViewSegmentation:
+        """A result with every point missing (NaN) and these flags."""
         n = self.n_markers
         nan2 = np.full(2, np.nan)
         return ViewSegmentation(
             flags=flags,
-            noise_sigma_gray=sigma,
+            noise_sigma_gray=photometry.sigma_gray,
             base_px=nan2,
             base_cov=np.full((2, 2), np.nan),
             tip_px=nan2.copy(),
@@ -479,17 +379,78 @@ class Segmenter:
             tip_band_px=nan2.copy(),
             tip_band_cov=np.full((2, 2), np.nan),
             tip_direction=nan2.copy(),
+            photometry=photometry,
         )
 
-    def _pick_blobs(self, mask: Array, base_px: Array | None):
-        """The catheter's blob and the blobs near it: ROI (x0, y0, x1, y1), base found."""
+    def _coarse_box(self, image, coarse_background, photometry, base_px):
+        """The region ``(x0, y0, x1, y1)`` of the catheter's blobs found in the whole image at
+        half resolution, with a margin of 4 px; None if there are none."""
+        s = self.settings
+        threshold = max(
+            s.threshold_sigma * _COARSE_NOISE * photometry.sigma_gray, s.min_threshold_gray
+        )
+        below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
+        mask = cv2.compare(cv2.pyrDown(image), cv2.LUT(coarse_background, below), cv2.CMP_LT)
+        base = None if base_px is None else 0.5 * np.asarray(base_px, float).reshape(2)
+        picked = self._pick_blobs(mask, base, scale=0.5)
+        if picked is None:
+            return None
+        height, width = image.shape
+        x0, y0, x1, y1 = picked[0]
+        return (max(2 * x0 - 4, 0), max(2 * y0 - 4, 0), min(2 * x1 + 4, width),
+                min(2 * y1 + 4, height))
+
+    def _find(self, image, smoothed_background, photometry, box, base_px):
+        """The catheter's region in the search box ``(x0, y0, x1, y1)``.
+
+        Foreground: ``f(background) - image > threshold``, both smoothed
+        (:func:`smooth_for_detection`; ``f`` commutes with the smoothing to far below a gray
+        level for a smooth tone curve), by one table lookup and one comparison.
+
+        Returns ``(x0, y0, x1, y1)`` in the image, its foreground mask and whether the
+        catheter passes near the base; None when there is nothing, or, for a box smaller than
+        the image, when the catheter misses the base or comes within 3 px of the box's edge
+        (it may run on outside).
+        """
+        s = self.settings
+        bx0, by0, bx1, by1 = box
+        threshold = max(
+            s.threshold_sigma * _SMOOTHED_NOISE * photometry.sigma_gray, s.min_threshold_gray
+        )
+        # image < f(b) - threshold, for integer gray levels: image < ceil(f(b) - threshold).
+        below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
+        mask = cv2.compare(
+            smooth_for_detection(image[by0:by1, bx0:bx1]),
+            cv2.LUT(smoothed_background[by0:by1, bx0:bx1], below),
+            cv2.CMP_LT,
+        )
+        if base_px is not None:
+            base_px = np.asarray(base_px, float).reshape(2) - (bx0, by0)
+        picked = self._pick_blobs(mask, base_px)
+        if picked is None:
+            return None
+        (x0, y0, x1, y1), base_ok = picked
+        height, width = image.shape
+        if (bx1 - bx0, by1 - by0) != (width, height):
+            inner = (x0 > 0 or bx0 == 0, y0 > 0 or by0 == 0,
+                     x1 < mask.shape[1] or bx1 == width, y1 < mask.shape[0] or by1 == height)
+            if not (all(inner) and base_ok):
+                return None
+        return (x0 + bx0, y0 + by0, x1 + bx0, y1 + by0), mask[y0:y1, x0:x1], base_ok
+
+    def _pick_blobs(self, mask: Array, base_px: Array | None, scale: float = 1.0):
+        """The catheter's blob and the blobs near it: ROI (x0, y0, x1, y1), base found.
+
+        ``scale`` is the mask's resolution relative to the image's (the settings' areas and
+        distances are in image pixels).
+        """
         s = self.settings
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         blobs = []
         for c in contours:
             # Pixel area of a blob from its boundary polygon (Pick's theorem).
             area = cv2.contourArea(c) + 0.5 * cv2.arcLength(c, True) + 1.0
-            if area >= s.min_area_px:
+            if area >= s.min_area_px * scale**2:
                 blobs.append((area, c, cv2.boundingRect(c)))
         if not blobs:
             return None
@@ -500,7 +461,7 @@ class Segmenter:
             if np.all(np.isfinite(p)):
                 dist = [-cv2.pointPolygonTest(c, p, True) for _, c, _ in blobs]
                 nearest = int(np.argmin(dist))
-                if dist[nearest] <= s.base_search_px:
+                if dist[nearest] <= s.base_search_px * scale:
                     main, base_ok = nearest, True
         x, y, w, h = blobs[main][2]
         box = [x, y, x + w, y + h]
@@ -512,7 +473,7 @@ class Segmenter:
             for r in list(rest):
                 gx = max(r[0] - box[2], box[0] - (r[0] + r[2]), 0)
                 gy = max(r[1] - box[3], box[1] - (r[1] + r[3]), 0)
-                if np.hypot(gx, gy) <= s.max_gap_px:
+                if np.hypot(gx, gy) <= s.max_gap_px * scale:
                     box = [min(box[0], r[0]), min(box[1], r[1]),
                            max(box[2], r[0] + r[2]), max(box[3], r[1] + r[3])]
                     rest.remove(r)
@@ -523,24 +484,24 @@ class Segmenter:
                min(box[3] + m, height))
         return roi, base_ok
 
-    def _segment_roi(self, image, background, diff, mask, roi, base_px, sigma, flags):
+    def _segment_roi(self, image, background, photometry, m, roi, base_px, flags):
         s = self.settings
+        sigma = photometry.sigma_gray
         x0, y0, x1, y1 = roi
         height, width = image.shape
-        m = mask[y0:y1, x0:x1]
         if self._kernel is not None:
             m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, self._kernel)
         n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
         big = stats[:, cv2.CC_STAT_AREA] >= s.min_area_px
         big[0] = False
         if not big.any():
-            return self._empty(flags | SegmentationFlag.NO_CATHETER, sigma)
+            return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
         # Usually every blob in the region is large: keep the mask as it is.
         keep = m if big[1:].all() else big[labels].view(np.uint8)
         ys, xs = np.nonzero(keep)
-        bg = background[y0:y1, x0:x1][ys, xs].astype(np.float64)
-        bg = np.maximum(bg, 1.0)
-        w = diff[y0:y1, x0:x1][ys, xs] / bg
+        # The background as the frame would show it: the contrast is relative to that.
+        bg = np.maximum(photometry.lut[background[y0:y1, x0:x1][ys, xs]].astype(np.float64), 1.0)
+        w = np.maximum(bg - image[y0:y1, x0:x1][ys, xs], 0.0) / bg
         var_w = (sigma / bg) ** 2
         xy = np.column_stack([xs + x0, ys + y0]).astype(np.float64)
         # ---- pixel graph (8-neighbours) and the geodesic sweep from the base
@@ -677,6 +638,7 @@ class Segmenter:
             tip_extent_px=float(tip_extent) if tip_band is not None else float("nan"),
             tube_radius_px=float(tube_radius),
             tip_width_ratio=float(width_ratio),
+            photometry=photometry,
         )
 
     def _overlapping(self, bins: Array, thickness_of, bands: list) -> bool:
@@ -846,14 +808,13 @@ class _PixelGraph:
     def __init__(self, ys: Array, xs: Array, shape: tuple[int, int], xy: Array) -> None:
         n = ys.size
         width = shape[1] + 2
-        index = np.full((shape[0] + 2) * width, -1, np.int32)
+        # Every pixel gets its eight neighbours; missing ones point at an extra sink node n
+        # that has no way out, so no masking or sorting is needed.
+        index = np.full((shape[0] + 2) * width, n, np.int32)
         flat = (ys + 1) * width + (xs + 1)
         index[flat] = np.arange(n, dtype=np.int32)
         offsets = np.array([dy * width + dx for dy, dx in _OFFSETS])
         nb = index[flat[:, None] + offsets]
-        # Every pixel gets its eight neighbours; missing ones point at an extra sink node
-        # that has no way out, so no masking or sorting is needed.
-        nb[nb < 0] = n
         indptr = np.append(np.arange(0, 8 * n + 1, 8, dtype=np.int32), 8 * n)
         lengths = np.tile(_LENGTHS, n)
         self.n = n
@@ -890,293 +851,3 @@ class _PixelGraph:
             self._bridge(far, int(out[j]), float(gaps[j]))
             joined = True
         return dist, joined
-
-
-# ------------------------------------------------------------------------------- the pair
-@dataclass(frozen=True)
-class PairSegmentation:
-    """Both views of a synchronised pair, and the rows of a pipeline Frame.
-
-    Attributes
-    ----------
-    front, side : ViewSegmentation
-    uv_front, uv_side : arrays (1 + n_markers, 2)
-        Rows ``[tip, marker_0, ...]``, px, NaN for points not found or rejected.
-    cov_front, cov_side : arrays (1 + n_markers, 2, 2)
-        px^2, NaN where the point is missing.
-    rejected : array (1 + n_markers,) of bool
-        Rows found in both views whose rays do not meet (epipolar check): withheld in both,
-        since one of the two views has picked the wrong point (the catheter overlapping
-        itself in that view).
-    tip_refined : bool
-        The tip was placed from the tip band in both views (see :func:`segment_pair`).
-    """
-
-    front: ViewSegmentation
-    side: ViewSegmentation
-    uv_front: Array
-    uv_side: Array
-    cov_front: Array
-    cov_side: Array
-    rejected: Array
-    tip_refined: bool = False
-
-    def frame(
-        self,
-        time_s: float,
-        q: Array,
-        q_dot: Array | None = None,
-        images: tuple[Array, Array] | None = None,
-        delta_L_true_rad: float | None = None,
-    ) -> Frame:
-        """The pipeline frame of this pair at the given time and joint values."""
-        return Frame(
-            time_s=float(time_s),
-            q=np.asarray(q, float),
-            q_dot=None if q_dot is None else np.asarray(q_dot, float),
-            uv_front=self.uv_front,
-            uv_side=self.uv_side,
-            cov_front=self.cov_front,
-            cov_side=self.cov_side,
-            images=images,
-            delta_L_true_rad=delta_L_true_rad,
-        )
-
-
-def _unit_sphere(n: int) -> Array:
-    """n nearly uniform unit vectors (Fibonacci lattice), shape (n, 3)."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
-    r = np.sqrt(1.0 - z**2)
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
-
-
-_COARSE = _unit_sphere(200)  # about 15 degrees apart
-_CAP_RAD = np.radians(16.0)
-
-
-def _cap(n: int, angle_rad: float) -> Array:
-    """n nearly uniform unit vectors within ``angle_rad`` of +z, shape (n, 3)."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - (1.0 - np.cos(angle_rad)) * k / n
-    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
-    r = np.sqrt(1.0 - z**2)
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
-
-
-_FINE = _cap(100, _CAP_RAD)  # about 3 degrees apart
-
-
-def _cross(a: Array, b: Array) -> Array:
-    """Cross product of two 3-vectors (np.cross is slow for single vectors)."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
-
-
-def _around(t: Array, cap: Array) -> Array:
-    """The cap's directions turned so that +z goes to the unit vector t."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _cross(t, helper)
-    u /= np.sqrt(u @ u)
-    v = _cross(t, u)
-    return cap @ np.stack([u, v, t])
-
-
-def _tip_from_band(
-    rig: BiplaneRig,
-    front: ViewSegmentation,
-    side: ViewSegmentation,
-    centre_w: Array,
-    jacobians: tuple[Array, Array],
-    half_band_mm: float,
-) -> tuple[Array, float]:
-    """The tip in {W}: the tip band's centre moved half a band along the 3-D tangent.
-
-    The band's centroid is the projection of its centre in both views whatever the
-    foreshortening, so the centre ``centre_w`` is triangulated from the two centroids. The
-    tangent t is the unit vector that best explains, in both views, where the image ends
-    past the centroid: ``half_band t`` projects to an image vector p (short when t points at
-    the camera), and the end disc of the tube sticks out past the tip by
-    ``pi/4 R |sin a|`` (R the tube's image radius, a the angle between t and the image
-    plane). Per view the residuals are p's offset across the measured direction and the
-    measured extent minus ``p . direction + pi/4 R |sin a|``, px; their squares are summed
-    over both views and minimised over the sphere of directions (a coarse grid, then a fine
-    cap around its best). A view where the tip points at the camera has a short p and an end
-    that is a disc: its poorly defined direction then costs little, which is what makes this
-    robust where intersecting the two planes of the image directions is not.
-
-    ``jacobians`` are the views' projection Jacobians at the centre (px/mm). Returns the tip
-    in {W} and the misfit (the smallest sum of squared residuals, px^2).
-    """
-    terms = []
-    for view, seg, J in zip((rig.front, rig.side), (front, side), jacobians, strict=True):
-        x_cam = view.R_cam_w @ centre_w + view.t_cam_w
-        ray = (x_cam / np.sqrt(x_cam @ x_cam)) @ view.R_cam_w  # viewing ray in {W}
-        terms.append((half_band_mm * J.T, ray, 0.25 * np.pi * seg.tube_radius_px,
-                      seg.tip_extent_px, seg.tip_direction))
-
-    def cost(T: Array) -> Array:
-        total = np.zeros(T.shape[0])
-        for JT, ray, cap_px, extent, direction in terms:
-            p = T @ JT
-            along = p @ direction
-            across = p - along[:, None] * direction
-            # The end disc adds to the extent along the measured direction whatever that is:
-            # seen end-on the band is a disc and its measured direction means little.
-            r_along = extent - along - cap_px * np.abs(T @ ray)
-            total += np.einsum("ij,ij->i", across, across) + r_along**2
-        return total
-
-    best = _COARSE[int(np.argmin(cost(_COARSE)))]
-    fine = _around(best, _FINE)
-    costs = cost(fine)
-    k = int(np.argmin(costs))
-    return centre_w + half_band_mm * fine[k], float(costs[k])
-
-
-def segment_pair(
-    segmenter: Segmenter,
-    images: tuple[Array, Array],
-    backgrounds: tuple[Array, Array],
-    base_px: tuple[Array | None, Array | None] = (None, None),
-    rig: BiplaneRig | None = None,
-) -> PairSegmentation:
-    """Segment a synchronised (front, side) pair into the fields of a pipeline Frame.
-
-    Parameters
-    ----------
-    segmenter : Segmenter
-    images, backgrounds : pairs of uint8 arrays (h, w)
-        Front and side frames and their empty-scene priors.
-    base_px : pair of arrays (2,) or None
-        The registered base projected into each view.
-    rig : BiplaneRig, optional
-        The calibrated pinhole rig of the images. With it, two cross-view steps run:
-        rows whose rays miss each other by more than the epipolar gate are withheld
-        (``rejected``), and when both views see the tip band the tip is placed in 3-D from
-        the band's centre and the catheter's tangent and projected back into both views.
-        This removes the bias of a single view's far end when the tip points toward the
-        camera (the end disc of the tube sticks out past the end point).
-    """
-    s = segmenter.settings
-    front = segmenter.segment(images[0], backgrounds[0], base_px[0])
-    side = segmenter.segment(images[1], backgrounds[1], base_px[1])
-    uv_f, cov_f, _ = frame_points(front)
-    uv_s, cov_s, _ = frame_points(side)
-    rejected = np.zeros(uv_f.shape[0], bool)
-    if rig is None:
-        return PairSegmentation(front, side, uv_f, uv_s, cov_f, cov_s, rejected)
-    if rig.kind != "pinhole":
-        raise ValueError("segment_pair needs the pinhole rig the images were taken with")
-    tip_rows = np.concatenate([[True], segmenter.marker_is_tip])
-    both_bands = bool(
-        np.all(np.isfinite(front.tip_band_px)) and np.all(np.isfinite(side.tip_band_px))
-    )
-    # Epipolar check: each row on its own points; the tip by its band centroids.
-    check_f, check_s = uv_f.copy(), uv_s.copy()
-    if both_bands:
-        check_f[tip_rows], check_s[tip_rows] = front.tip_band_px, side.tip_band_px
-    both = np.all(np.isfinite(check_f), -1) & np.all(np.isfinite(check_s), -1)
-    points_w = np.full((uv_f.shape[0], 3), np.nan)
-    jacobians = None
-    if both.any():
-        points_w[both] = rig.reconstruct(check_f[both], check_s[both])
-        # One projection per view: the points, and (for the tip) three nudged copies of the
-        # band centre that give the projection Jacobian there by finite differences.
-        nudge_mm = 1e-3
-        points = points_w[both]
-        if both[0]:
-            points = np.vstack([points, points_w[0] + nudge_mm * np.eye(3)])
-        reprojected, jacobians = [], []
-        for view in (rig.front, rig.side):
-            uv = view.project(points)
-            reprojected.append(uv[: both.sum()])
-            if both[0]:
-                jacobians.append((uv[-3:] - uv[0]).T / nudge_mm)
-        residual = np.maximum(
-            np.linalg.norm(reprojected[0] - check_f[both], axis=-1),
-            np.linalg.norm(reprojected[1] - check_s[both], axis=-1),
-        )
-        spread = np.sqrt(
-            np.trace(cov_f[both], axis1=-2, axis2=-1) + np.trace(cov_s[both], axis1=-2, axis2=-1)
-        )
-        spread = np.where(np.isfinite(spread), spread, 0.0)
-        bad = residual > np.maximum(s.epipolar_gate_px, 4.0 * spread)
-        rejected[np.flatnonzero(both)[bad]] = True
-    refined = bool(
-        both_bands
-        and both[0]
-        and not rejected[0]
-        and np.isfinite(front.tip_extent_px * side.tip_extent_px)
-        and np.isfinite(front.tube_radius_px * side.tube_radius_px)
-    )
-    if refined:
-        half_band = 0.5 * s.band_length_mm
-        tip_w, misfit = _tip_from_band(rig, front, side, points_w[0], jacobians, half_band)
-        views = ((front, uv_f, cov_f, reprojected[0][0]), (side, uv_s, cov_s, reprojected[1][0]))
-        for (seg, uv, cov, centre_px), J in zip(views, jacobians, strict=True):
-            px_per_mm = float(np.linalg.norm(J, axis=-1).max())
-            # The tangent's uncertainty, and what the two views disagree on (4 residuals for
-            # 2 unknowns), as a variance of the tip in the image.
-            extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit
-            # Half a band from the centre: first order is exact to far below a pixel.
-            uv[tip_rows] = centre_px + J @ (tip_w - points_w[0])
-            cov[tip_rows] = seg.tip_band_cov + extra * np.eye(2)
-    for uv, cov in ((uv_f, cov_f), (uv_s, cov_s)):
-        uv[rejected] = np.nan
-        cov[rejected] = np.nan
-    return PairSegmentation(front, side, uv_f, uv_s, cov_f, cov_s, rejected, refined)
-
-
-class PairSegmenter:
-    """Segments synchronised pairs of one rig, catheter and registered base.
-
-    Parameters
-    ----------
-    catheter : Catheter
-    rig : BiplaneRig
-        Pinhole rig of the cameras (e.g. :func:`models.rig_file.load_rig`).
-    R_w_b, o_b_w_mm : arrays (3, 3), (3,)
-        Registered base pose; its origin projected into each view picks the catheter and
-        its base end.
-    backgrounds : pair of uint8 arrays
-        Prior images of the empty scene, one per view, of the rig's image sizes.
-    settings : SegmentationSettings
-    """
-
-    def __init__(
-        self,
-        catheter: Catheter,
-        rig: BiplaneRig,
-        R_w_b: Array,
-        o_b_w_mm: Array,
-        backgrounds: tuple[Array, Array],
-        settings: SegmentationSettings = SegmentationSettings(),
-    ) -> None:
-        if rig.kind != "pinhole":
-            raise ValueError("PairSegmenter needs a pinhole rig (images are in pixels)")
-        self.rig = rig
-        self.segmenter = Segmenter(catheter, settings)
-        self.backgrounds = tuple(
-            check_image(bg, f"{name} background image", (v.image_size[1], v.image_size[0]))
-            for bg, name, v in zip(backgrounds, ("front", "side"), (rig.front, rig.side),
-                                   strict=True)
-        )
-        o = np.asarray(o_b_w_mm, float)
-        self.base_px = (rig.front.project(o), rig.side.project(o))
-
-    def segment(self, images: tuple[Array, Array]) -> PairSegmentation:
-        return segment_pair(self.segmenter, images, self.backgrounds, self.base_px, self.rig)
-
-    def frame(
-        self,
-        time_s: float,
-        q: Array,
-        images: tuple[Array, Array],
-        q_dot: Array | None = None,
-        delta_L_true_rad: float | None = None,
-    ) -> Frame:
-        """Segment a pair and return the pipeline Frame (images attached)."""
-        return self.segment(images).frame(time_s, q, q_dot, images, delta_L_true_rad)

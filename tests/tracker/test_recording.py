@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+from models.pose import Pose
+from models.rig_file import rig_toml
 from replay.simulation.render import default_render_rig
 from tracker.io import recording as rec
 from tracker.io.recording import (
@@ -22,14 +24,15 @@ from tracker.io.recording import (
     RecordingError,
     RecordingWriter,
     open_recording,
-    rig_toml,
 )
+from tracker.io.recording import writer as recording_writer
 from tracker.types import Estimate, Flag, Frame
 
+REPO = Path(__file__).resolve().parents[2]
 RIG = default_render_rig()
 R_W_B, O_B_W = np.eye(3), np.array([0.0, 0.0, -15.0])
 MODEL_TOML = DEFAULT_MODEL_PATH.read_text()
-RIG_TOML = rig_toml(RIG, R_W_B, O_B_W)
+RIG_TOML = rig_toml(RIG, Pose(R_W_B, O_B_W))
 CATHETER = load_catheter(DEFAULT_MODEL_PATH)
 P = 1 + len(CATHETER.marker_arclengths_mm)  # points per view: the tip, then the markers
 
@@ -60,10 +63,8 @@ def _frames(n: int, rng: np.random.Generator, images: bool) -> list[Frame]:
                 time_s=t,
                 q=q[0],
                 q_dot=q_dot[0],
-                uv_front=uv_f,
-                uv_side=uv_s,
-                cov_front=cov,
-                cov_side=cov.copy(),
+                uv=(uv_f, uv_s),
+                cov=(cov, cov.copy()),
                 images=pair,
                 delta_L_true_rad=float(rng.uniform(-np.pi, np.pi)),
             )
@@ -154,12 +155,12 @@ def test_round_trip_is_identical(recorded):
             f = got.frame
             assert isinstance(f, Frame)
             assert math.isclose(f.time_s, sent.time_s, abs_tol=1e-9)
-            np.testing.assert_array_equal(f.uv_front, sent.uv_front)
-            np.testing.assert_array_equal(f.uv_side, sent.uv_side)  # NaN rows included
-            np.testing.assert_array_equal(f.cov_front, sent.cov_front)
+            np.testing.assert_array_equal(f.uv[0], sent.uv[0])
+            np.testing.assert_array_equal(f.uv[1], sent.uv[1])  # NaN rows included
+            np.testing.assert_array_equal(f.cov[0], sent.cov[0])
             np.testing.assert_array_equal(
-                f.cov_side[~np.isnan(sent.uv_side[:, 0])],
-                sent.cov_side[~np.isnan(sent.uv_side[:, 0])],
+                f.cov[1][~np.isnan(sent.uv[1][:, 0])],
+                sent.cov[1][~np.isnan(sent.uv[1][:, 0])],
             )
             np.testing.assert_array_equal(f.images[0], sent.images[0])
             np.testing.assert_array_equal(f.images[1], sent.images[1])
@@ -176,9 +177,10 @@ def test_round_trip_is_identical(recorded):
             # times are stored in integer ns
             assert math.isclose(got.time_s, sent.time_s, abs_tol=1e-9)
             assert replace(got.estimate, time_s=sent.time_s) == sent
-        rig, R_w_b, o_b_w = r.rig()
-        np.testing.assert_array_equal(rig.front.K, RIG.front.K)
-        np.testing.assert_array_equal(o_b_w, O_B_W)
+        rig, base = r.rig()
+        np.testing.assert_array_equal(rig.views[0].K, RIG.views[0].K)
+        np.testing.assert_array_equal(base.R_w_b, R_W_B)
+        np.testing.assert_array_equal(base.o_b_w_mm, O_B_W)
         assert r.catheter().marker_arclengths_mm == CATHETER.marker_arclengths_mm
 
 
@@ -196,15 +198,8 @@ def test_joints_are_interpolated_to_frame_times(tmp_path):
             writer.write_joints(t_joint[j:upto], a + np.outer(t_joint[j:upto], b))
             j = upto
             uv = np.full((P, 2), 100.0)
-            frame = Frame(
-                t,
-                np.zeros(3),
-                None,
-                uv,
-                uv,
-                np.tile(np.eye(2), (P, 1, 1)),
-                np.tile(np.eye(2), (P, 1, 1)),
-            )
+            cov = np.tile(np.eye(2), (P, 1, 1))
+            frame = Frame(t, np.zeros(3), None, (uv, uv), (cov, cov))
             writer.write_frame(frame)
         writer.write_joints(t_joint[j:], a + np.outer(t_joint[j:], b))
     with open_recording(path) as r:
@@ -253,7 +248,7 @@ def _validate(value, schema: dict, where: str) -> None:
 
 def _documented_schemas() -> dict[str, dict]:
     """The JSON schemas printed in docs/recording.md, by name."""
-    doc = (Path(__file__).parents[2] / "docs" / "recording.md").read_text()
+    doc = (REPO / "docs" / "recording.md").read_text()
     found = re.findall(r"### `([\w.]+)`\n\n```json\n(.*?)\n```", doc, flags=re.S)
     return {name: json.loads(text) for name, text in found}
 
@@ -265,7 +260,7 @@ def test_mcap_reader_reads_every_channel_with_the_documented_schemas(recorded):
     path, frames, _ = recorded
     documented = _documented_schemas()
     assert set(documented) == set(rec.SCHEMAS)
-    doc = (Path(__file__).parents[2] / "docs" / "recording.md").read_text()
+    doc = (REPO / "docs" / "recording.md").read_text()
     seen: dict[str, int] = {}
     with open(path, "rb") as f:
         reader = make_reader(f)
@@ -379,7 +374,7 @@ def test_truncated_file_keeps_the_readable_part(recorded, tmp_path):
     assert 0 < len(out) < len(frames)
     # what was read is exactly the beginning of the session
     for got, sent in zip(out, frames, strict=False):
-        np.testing.assert_array_equal(got.frame.uv_front, sent.uv_front)
+        np.testing.assert_array_equal(got.frame.uv[0], sent.uv[0])
         np.testing.assert_array_equal(got.frame.images[1], sent.images[1])
 
 
@@ -393,7 +388,7 @@ def test_not_mcap_and_unknown_version_and_missing_joints(tmp_path, monkeypatch):
     rng = np.random.default_rng(5)
     frames = _frames(5, rng, images=False)
     future = tmp_path / "future.mcap"
-    monkeypatch.setattr(rec, "FORMAT_VERSION", 99)
+    monkeypatch.setattr(recording_writer, "FORMAT_VERSION", 99)
     _write(future, frames)
     monkeypatch.undo()
     with pytest.raises(RecordingError, match="unknown recording format version '99'"):
@@ -420,8 +415,8 @@ def test_missing_view_channel_keeps_the_other_view(tmp_path):
                     {
                         "view": "front",
                         "unit": "px",
-                        "uv": frame.uv_front.tolist(),
-                        "cov": frame.cov_front.tolist(),
+                        "uv": frame.uv[0].tolist(),
+                        "cov": frame.cov[0].tolist(),
                     }
                 ),
             )
@@ -430,8 +425,8 @@ def test_missing_view_channel_keeps_the_other_view(tmp_path):
         _one(r.report.warnings, "/truth")
         out = list(r.frames())
     assert len(out) == len(frames)
-    assert all(np.isnan(x.frame.uv_side).all() for x in out)
-    np.testing.assert_array_equal(out[4].frame.uv_front, frames[4].uv_front)
+    assert all(np.isnan(x.frame.uv[1]).all() for x in out)
+    np.testing.assert_array_equal(out[4].frame.uv[0], frames[4].uv[0])
 
 
 def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_path):
@@ -447,9 +442,9 @@ def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_p
         writer.write_joints(t_joint, q, q_dot)
         for k in order:
             writer.write_frame(frames[k])
-        writer.write_frame(replace(frames[20], uv_front=frames[20].uv_front + 1.0))  # duplicate
+        writer.write_frame(replace(frames[20], uv=(frames[20].uv[0] + 1.0, frames[20].uv[1])))  # duplicate
         stamp = int(round(frames[25].time_s * 1e9))
-        nan_uv = frames[25].uv_front.copy()
+        nan_uv = frames[25].uv[0].copy()
         nan_uv[0] = [float("nan"), 1.0]
         writer.write_raw(
             "/markers/front",
@@ -459,7 +454,7 @@ def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_p
                     "view": "front",
                     "unit": "px",
                     "uv": nan_uv.tolist(),
-                    "cov": frames[25].cov_front.tolist(),
+                    "cov": frames[25].cov[0].tolist(),
                 }
             ).encode(),
         )
@@ -481,31 +476,82 @@ def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_p
     assert len(out) == 31  # 30 frames and the extra NaN frame: nothing lost
     by_time = {round(x.frame.time_s * 1e9): x.frame for x in out}
     np.testing.assert_array_equal(
-        by_time[round(frames[20].time_s * 1e9)].uv_front, frames[20].uv_front
+        by_time[round(frames[20].time_s * 1e9)].uv[0], frames[20].uv[0]
     )  # the first of the duplicates
     nan_frame = by_time[stamp + 1]
-    assert np.isnan(nan_frame.uv_front[0]).all() and np.isfinite(nan_frame.uv_front[1:]).all()
+    assert np.isnan(nan_frame.uv[0][0]).all() and np.isfinite(nan_frame.uv[0][1:]).all()
     # the joint value next to the dropped NaN sample is interpolated from its neighbours
     assert r.joints.time_s.size == t_joint.size - 1
+
+
+def _chunks(data: bytes) -> list[tuple[int, int]]:
+    """(offset, record length) of the chunk records of an MCAP file's data section."""
+    out, offset = [], 8
+    while offset < len(data):
+        opcode, length = struct.unpack_from("<BQ", data, offset)
+        if opcode == 0x0F:  # data end: the summary follows
+            break
+        if opcode == 6:
+            out.append((offset, length))
+        offset += 9 + length
+    return out
 
 
 def test_corrupt_chunk_is_skipped_and_the_rest_is_read(recorded, tmp_path):
     path, frames, _ = recorded
     data = bytearray(path.read_bytes())
     # flip bytes inside the third chunk's compressed data
-    offset, seen = 8, 0
-    while offset < len(data):
-        opcode, length = struct.unpack_from("<BQ", data, offset)
-        if opcode == 6:
-            seen += 1
-            if seen == 3:
-                middle = offset + 9 + length // 2
-                data[middle : middle + 16] = bytes(16)
-                break
-        offset += 9 + length
+    offset, length = _chunks(data)[2]
+    middle = offset + 9 + length // 2
+    data[middle : middle + 16] = bytes(16)
     bad = tmp_path / "corrupt.mcap"
     bad.write_bytes(bytes(data))
     with open_recording(bad) as r:
         _one(r.report.warnings, "corrupt chunk")
+        assert r.report.damage[0].kind in ("bad_crc", "bad_compression")
+        assert not r.report.truncated
         n = len(list(r.frames()))
     assert 0 < n < len(frames)
+
+
+@pytest.mark.parametrize("damaged", ["past the end", "longer", "shorter"])
+def test_damaged_chunk_length_is_named_and_nothing_is_lost(recorded, tmp_path, damaged):
+    """A chunk whose record length is damaged is read by its own content (its CRC checks
+    it), and the report calls it a damaged length, not a truncated file."""
+    path, frames, _ = recorded
+    data = bytearray(path.read_bytes())
+    offset, length = _chunks(data)[-2]  # the first second of frames
+    wrong = {"past the end": 10**12, "longer": length + 5000, "shorter": length // 2}[damaged]
+    struct.pack_into("<Q", data, offset + 1, wrong)
+    bad = tmp_path / "length.mcap"
+    bad.write_bytes(bytes(data))
+    with open_recording(bad) as r:
+        message = _one(r.report.warnings, "damaged record length")
+        assert r.report.warnings == [message]
+        assert [(d.kind, d.offset, d.lost) for d in r.report.damage] == [
+            ("bad_length", offset, False)
+        ]
+        assert not r.report.truncated and r.report.lost_bytes == 0
+        out = list(r.frames(images=False))
+    assert len(out) == len(frames)
+
+
+def test_garbage_is_skipped_up_to_the_next_chunk(recorded, tmp_path):
+    path, frames, _ = recorded
+    data = bytearray(path.read_bytes())
+    (offset, _), (next_chunk, _) = _chunks(data)[-2:]
+    # No record starts here any more (opcode 0 is reserved): the first second is lost.
+    data[offset : offset + 64] = bytes(64)
+    bad = tmp_path / "garbage.mcap"
+    bad.write_bytes(bytes(data))
+    with open_recording(bad) as r:
+        message = _one(r.report.warnings, "no readable record")
+        assert f"bytes {offset} to {next_chunk}" in message
+        assert [d.kind for d in r.report.damage] == ["bad_record"]
+        assert not r.report.truncated and r.report.lost_bytes == next_chunk - offset
+        out = list(r.frames(images=False))
+    assert 0 < len(out) < len(frames)
+    # what follows the damage is read intact
+    by_time = {round(f.time_s, 6): f for f in frames}
+    for got in out:
+        np.testing.assert_array_equal(got.frame.uv[0], by_time[round(got.frame.time_s, 6)].uv[0])

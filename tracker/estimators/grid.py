@@ -1,0 +1,278 @@
+"""Point-mass (grid) filter of delta_L: the exact Bayesian reference for the UKF.
+
+delta_L is one angle, so its posterior can be held on a grid of cells over the circle and
+computed without approximation beyond the grid. :class:`GridFilter` does so with the UKF's
+process and measurement models (:mod:`tracker.estimators.measurement`, the same
+:class:`~tracker.estimators.ukf_settings.UKFSettings`):
+
+- the joint-equivalent deviation dq of the shape is Rao-Blackwellised: every cell carries
+  the Gaussian of dq given that cell's angle, one mean per cell (its residuals use the
+  second-order shape) and one covariance for all (the deviation's Jacobian does not depend
+  on the angle; it is taken at the deviation of the posterior mean), updated by a Kalman
+  filter;
+- predict: the random walk is a convolution of the grid with a wrapped normal, applied
+  exactly as a product of Fourier coefficients ``exp(-k^2 var / 2)`` (one real FFT each
+  way; the per-cell dq means follow by moment matching); a torsion jump mixes in the
+  uniform density with the jump probability;
+- update: every group's residual in the model frame is affine in (cos, sin) of the cell's
+  angle and in dq, so the heavy-tailed likelihood of a frame on all cells costs a few
+  element-wise operations on (cells, groups, 3) arrays; the groups enter as independent
+  given the cell (their common dq uncertainty enters each group's covariance); single-view
+  points are projected on every cell;
+- the estimate is the circular mean of the posterior and its std the root of the posterior
+  variance (plus a cell's own ``h^2 / 12``).
+
+It carries no gate, restart or mismatch rule: a multimodal posterior (a nearly straight
+catheter, a torsion jump) is simply represented. It starts reporting once the posterior std
+first falls below ``uninformative_std_rad``. Not used from the settings: the UKF's
+sigma-point, hypothesis and restart settings, ``include_rate`` (the grid is over delta_L
+alone) and ``estimate_noise``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from models.catheter import Catheter
+from tracker.estimators.measurement import (
+    FrameGroups,
+    ShapeExpansion,
+    deviation_decay,
+    deviation_jacobian,
+    deviation_prior,
+    inlier_probability,
+    jump_probability,
+    mixture_log_likelihood,
+    model_error_covariance,
+    offered_velocity,
+    process_variance,
+    quadratic_terms,
+    rotation_invariant,
+    velocity_offered,
+    wrap,
+)
+from tracker.estimators.ukf import check_observation, observation_groups
+from tracker.estimators.ukf_core import spd_inverse
+from tracker.estimators.ukf_settings import UKFSettings
+from tracker.types import Estimate, Flag, Observation
+
+Array = np.ndarray
+DEFAULT_CELLS = 4096
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class GridFilter:
+    """Point-mass filter of delta_L on ``cells`` cells over [-pi, pi).
+
+    Parameters
+    ----------
+    catheter : Catheter
+    settings : UKFSettings, optional
+        Its process and measurement models (see the module notes for what is not used).
+    cells : int
+        Number of grid cells, >= 64 (1,024 to 4,096 resolve the posterior of the usual noise
+        levels).
+    name : str
+    """
+
+    def __init__(
+        self,
+        catheter: Catheter,
+        settings: UKFSettings | None = None,
+        cells: int = DEFAULT_CELLS,
+        name: str = "grid",
+    ) -> None:
+        if int(cells) != cells or cells < 64:
+            raise ValueError(f"a grid filter needs an integer number of cells >= 64, got {cells}")
+        self.catheter = catheter
+        self.settings = UKFSettings() if settings is None else settings
+        self.name = name
+        self.cells = int(cells)
+        self.cell_rad = 2 * math.pi / self.cells
+        self.angles = -math.pi + self.cell_rad * np.arange(self.cells)
+        self._cos, self._sin = np.cos(self.angles), np.sin(self.angles)
+        self._k2 = np.arange(self.cells // 2 + 1, dtype=float) ** 2
+        self._expansion = ShapeExpansion(catheter)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything: uniform posterior, not initialised."""
+        s = self.settings
+        self.p = np.full(self.cells, 1.0 / self.cells)
+        self._deviation = s.estimates_deviation
+        self.mu = np.zeros((self.cells, 2))
+        self.Sigma = np.diag(deviation_prior(np.zeros((1, 3)), s.joint_error_mm, 0.0)[0])
+        self._initialised = False
+        self._time_s = math.nan
+        self._q = np.full(3, np.nan)
+        self._tip_fused = np.zeros(1, dtype=bool)
+        self._rejected = 0
+
+    @property
+    def initialised(self) -> bool:
+        return self._initialised
+
+    def moments(self) -> tuple[float, float]:
+        """Circular mean and std of the posterior, rad."""
+        p = self.p
+        mean = math.atan2(float(p @ self._sin), float(p @ self._cos))
+        spread = wrap(self.angles - mean)
+        var = float(p @ (spread * spread)) + self.cell_rad**2 / 12.0
+        return float(wrap(mean)), math.sqrt(var)
+
+    def step(self, observation: Observation) -> Estimate:
+        """Predict the posterior to the frame's time and multiply in the frame's likelihood."""
+        s = self.settings
+        t, q = check_observation(observation, self._time_s)
+        offered = velocity_offered(s, self._tip_fused)
+        groups, partial = observation_groups(self._expansion, observation, q, bool(offered[0]))
+        known = math.isfinite(self._time_s)
+        dt = t - self._time_s if known else 0.0
+        turn = float(q[0] - self._q[0]) if known else 0.0
+        moved = float(np.sum(np.abs(q[1:] - self._q[1:]))) if known else 0.0
+        self._time_s, self._q = t, q.copy()
+        Q = float(process_variance(s.process_noise_rad2_s, s.rotation_noise_gain_rad, dt, turn))
+        if self._deviation:
+            prior = deviation_prior(q[None], s.joint_error_mm, s.gain_error)[0]
+            a = float(deviation_decay(moved, s.deviation_length_mm))
+            self.mu *= a
+            self.Sigma = a * a * self.Sigma + (1 - a * a) * np.diag(prior)
+        if self._initialised:
+            jump = float(jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn))
+            self._predict(Q, jump)
+        flags = Flag.PARTIAL if partial else Flag.NONE
+        rejected = 0
+        radius = 0.0
+        tip_fused = False
+        if groups is not None:
+            groups = offered_velocity(groups, s, self._tip_fused)
+        if groups is None or not groups.present.any():
+            flags |= Flag.NO_MEASUREMENT | (Flag.HELD if self._initialised else Flag.NONE)
+        else:
+            radius = float(groups.radius_mm()[0])
+            three_d = isinstance(groups, FrameGroups)
+            d2, log_lik, residual, S, J = self._likelihood(groups, Q, dt)
+            log_post = np.log(np.maximum(self.p, 1e-300)) + log_lik
+            log_post -= log_post.max()
+            p = np.exp(log_post)
+            self.p = p / p.sum()
+            mean, _ = self.moments()
+            at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
+            present = groups.present[0]
+            inlier = present & (
+                inlier_probability(d2[:, at], groups.dim, s.outlier_probability,
+                                   s.outlier_scale) >= 0.5
+            )  # fmt: skip
+            rejected = int(np.sum(present & ~inlier))
+            if rejected:
+                flags |= Flag.OUTLIER_REJECTED
+            tip_fused = bool(three_d and inlier[0])
+            if three_d and self._deviation and inlier.any():
+                self._update_deviation(J, inlier, residual, S)
+        self._tip_fused[0] = tip_fused
+        self._rejected += rejected
+        mean, std = self.moments()
+        if not self._initialised and std < s.uninformative_std_rad:
+            self._initialised = True
+        if not self._initialised:
+            return Estimate(
+                time_s=t, delta_L_rad=math.nan, std_rad=math.nan, q_r_rad=float(q[0]),
+                flags=flags | Flag.NOT_INITIALISED, informative_radius_mm=radius,
+                rejected_outliers=self._rejected,
+            )  # fmt: skip
+        if self._deviation:
+            at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
+            prior = deviation_prior(q[None], s.joint_error_mm, s.gain_error)[0]
+            if np.any(self.mu[at] ** 2 > 9.0 * prior):
+                flags |= Flag.MODEL_MISMATCH
+        return Estimate(
+            time_s=t, delta_L_rad=mean, std_rad=std, q_r_rad=float(q[0]), flags=flags,
+            informative_radius_mm=radius, rejected_outliers=self._rejected,
+        )  # fmt: skip
+
+    def _predict(self, variance: float, jump: float) -> None:
+        p = self.p
+        if variance > 0:
+            # The wrapped normal's Fourier coefficients at the integer frequencies of the grid.
+            kernel = np.exp(-0.5 * variance * self._k2)
+            p = np.maximum(np.fft.irfft(np.fft.rfft(self.p) * kernel, self.cells), 0.0)
+            if self._deviation and variance > (2 * self.cell_rad) ** 2:
+                weighted = np.fft.irfft(np.fft.rfft(self.p[:, None] * self.mu, axis=0)
+                                        * kernel[:, None], self.cells, axis=0)  # fmt: skip
+                self.mu = weighted / np.maximum(p, 1e-300)[:, None]
+            p /= p.sum()
+        if jump > 0:
+            mixed = (1.0 - jump) * p + jump / self.cells
+            # A jump lands anywhere with the deviation's prior mean (zero).
+            self.mu *= ((1.0 - jump) * p / mixed)[:, None]
+            p = mixed
+        self.p = p
+
+    def _likelihood(self, groups, Q: float, dt: float):
+        """Per group and cell d^2 (G, N), the frame's log-likelihood on every cell (N,), and
+        for 3-D data the residuals (N, G, 3) and the group covariances (G, 3, 3)."""
+        s = self.settings
+        present = groups.present[0]
+        dim = groups.dim
+        if isinstance(groups, FrameGroups):
+            M = model_error_covariance(
+                groups, s.joint_error_white_mm, s.velocity_relative_error, np.array([Q]),
+                np.array([dt]),
+            )[0]  # fmt: skip
+            J = groups.J[0]
+            if self._deviation:
+                mean, _ = self.moments()
+                at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
+                J = deviation_jacobian(J, groups.K[0], self.mu[at])
+            S = rotation_invariant(groups.R[0]) + M
+            if self._deviation:
+                S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2)
+            S = np.where(present[:, None, None], S, np.eye(3))
+            W = spd_inverse(S)
+            logdet = np.linalg.slogdet(S)[1]
+            y, c = groups.y[0], groups.c[0]
+            q_r = float(groups.q_r[0])
+            cq, sq = math.cos(q_r), math.sin(q_r)
+            cos = (cq * self._cos - sq * self._sin)[:, None]
+            sin = (sq * self._cos + cq * self._sin)[:, None]
+            # Rz(delta_1)^T y - c in the model frame, every cell and group.
+            residual = np.empty((self.cells,) + y.shape)
+            residual[..., 0] = cos * y[:, 0] + sin * y[:, 1] - c[:, 0]
+            residual[..., 1] = cos * y[:, 1] - sin * y[:, 0] - c[:, 1]
+            residual[..., 2] = y[:, 2] - c[:, 2]
+            if self._deviation:
+                residual -= np.einsum("gij,nj->ngi", groups.J[0], self.mu)
+                residual -= np.einsum("gij,nj->ngi", groups.K[0], quadratic_terms(self.mu))
+            d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
+        else:
+            S = groups.R[0]
+            W = spd_inverse(S)
+            logdet = np.linalg.slogdet(S)[1]
+            predicted = groups.predict(np.array([0]), self.angles[None, :, None])[0]
+            residual = groups.z[0][None] - predicted  # (N, G, 2)
+            d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
+            J = None
+        terms = mixture_log_likelihood(d2[present], dim, s.outlier_probability, s.outlier_scale)
+        log_lik = terms.sum(axis=0) - 0.5 * float(np.sum(logdet[present] + dim * _LOG_2PI))
+        return d2, log_lik, residual, S, J
+
+    def _update_deviation(self, J: Array, inlier: Array, residual: Array, S_g: Array) -> None:
+        """Kalman update of every cell's deviation mean with the inlying groups (one gain,
+        with the Jacobian J (G, 3, 2) at the deviation of the posterior mean)."""
+        J_in = J[inlier]
+        noise = S_g[inlier] - J_in @ self.Sigma @ np.swapaxes(J_in, -1, -2)
+        k = int(inlier.sum())
+        R = np.zeros((3 * k, 3 * k))
+        for i in range(k):
+            R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = noise[i]
+        H = J_in.reshape(-1, 2)
+        S = H @ self.Sigma @ H.T + R
+        gain = np.linalg.solve(S, H @ self.Sigma).T  # (2, m)
+        self.mu = self.mu + residual[:, inlier].reshape(self.cells, -1) @ gain.T
+        Sigma = self.Sigma - gain @ S @ gain.T
+        self.Sigma = 0.5 * (Sigma + Sigma.T)
+
+
+__all__ = ["DEFAULT_CELLS", "GridFilter"]

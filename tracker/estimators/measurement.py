@@ -1,0 +1,792 @@
+"""The measurement and process models shared by the UKF and the grid filter.
+
+Both filters estimate the single angle delta_L from frames whose 3-D data are vectors
+``y = Rz(q_r + delta_L) c + noise`` (docs/design.md section 3): the tip, each backbone marker
+and the tip velocity, each a *group* with its own noise. This module says, once, what such a
+frame is worth when the model is not exact.
+
+Likelihood of a group
+---------------------
+The residual of a group in the model frame (the catheter's own frame at delta_1 = 0) is
+``e(delta_1) = Rz(delta_1)^T y - c``. A contact or a miscalibrated model changes the shape
+as a joint deviation would (the paper made its deflections that way), so
+
+    e = J dq + K [dq_p^2, dq_p dq_d, dq_d^2] + noise,   noise ~ N(0, R_bar + M),
+
+- ``J = dc/d(q_p, q_d)`` of each point (mm/mm: the error grows with the arclength) and the
+  second-order term K (:class:`ShapeExpansion`: a deviation of 0.2 mm already turns the
+  tip by 20 degrees);
+- ``dq``: the joint-equivalent deviation (mm), a *state* of both filters, estimated online:
+  its prior is ``N(0, sigma_q^2 + (gain_error q_j)^2)`` per joint (:func:`deviation_prior`,
+  the second term: a bending gain that is off grows with the bending) and it decorrelates as
+  the joints move (:func:`deviation_decay`). Persistent, unlike noise: a deflected, nearly
+  straight configuration cannot pile up evidence for the opposite plane frame after frame;
+- ``R_bar``: the segmentation noise, reduced to its part that is invariant under rotations
+  about z_b (the mean of the horizontal variances, the vertical variance). A bi-plane
+  reconstruction whose views share the z_b axis has exactly this form; otherwise it is the
+  rotation average of the noise. The UKF uses the full noise;
+- ``M``: a small white model error ``J diag(sigma_w^2) J^T`` (what a joint deviation does not
+  describe exactly).
+
+For a planar catheter J lies in the bending plane, so the model error costs no information
+about the plane's angle where the catheter is bent, and takes its sign where the catheter is
+nearly straight (a deviation then moves the tip across the axis).
+
+For a given ``dq``, ``d^2 = e^T Sigma^-1 e`` is a trigonometric polynomial of degree two in
+the angle (:func:`group_coefficients`), the structure the closed forms use
+(:mod:`models.rotation_fit`); :func:`fit_frame` finds its global minimum. Gross errors (a
+wrong marker) are a heavy-tailed component: each group is, with probability
+``outlier_probability``, drawn from the same Gaussian widened ``outlier_scale`` times
+(:func:`mixture_log_likelihood`), so that data the model cannot explain lower the
+information of a frame instead of moving the estimate.
+
+The velocity group is the finite-difference or measured tip velocity ``v``, decorrelated
+from this frame's tip: ``v - K tip`` with ``K = cov(v, tip) cov(tip)^-1`` (for a finite
+difference ``K = I/dt``, and ``v - tip/dt = -tip_{t-1}/dt``: it measures the previous tip).
+Its deviation Jacobian is ``-K J_tip``; its own white model error: that of the tip it
+repeats, a relative error of the modelled velocity (``velocity_relative_error``), and the
+torsion change over the frame interval, which the velocity model leaves out (tangential,
+``process variance / dt^2``).
+
+Process model
+-------------
+A random walk of delta_L whose variance grows with time (``process_noise_rad2_s``) and with
+the base rotation (``rotation_noise_gain_rad`` per rad turned): torsion changes when the base
+turns and slowly otherwise. With probability :func:`jump_probability` (a rate per second and
+per rad turned) the torsion jumps to anywhere on the circle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from models.catheter import Catheter
+
+Array = np.ndarray
+
+# Step of the central differences of the shape in the joints, mm.
+DEVIATION_STEP_MM = 1e-3
+# Angles at which a frame's cost is evaluated before Newton's method polishes the minimum.
+_FIT_ANGLES = np.linspace(-np.pi, np.pi, 64, endpoint=False)
+_FIT_TABLE = np.stack(
+    [np.ones(64), np.cos(_FIT_ANGLES), np.sin(_FIT_ANGLES), np.cos(2 * _FIT_ANGLES),
+     np.sin(2 * _FIT_ANGLES)]
+)  # fmt: skip
+_TWO_PI = 2.0 * math.pi
+
+
+def wrap(angle: Array) -> Array:
+    """Angles wrapped to [-pi, pi)."""
+    return (angle + math.pi) % _TWO_PI - math.pi
+
+
+@dataclass(frozen=True)
+class FrameGroups:
+    """One frame's 3-D measurement groups for B trials (a leading batch axis).
+
+    Groups ``0 .. n_positions - 1`` are the tip and the catheter's markers; with
+    ``has_velocity_group`` the last group is the decorrelated velocity. Groups a trial lacks
+    (not segmented, NaN) are not ``present``; their arrays hold harmless placeholders.
+
+    Attributes
+    ----------
+    q : array, shape (B, 3)
+        Joint values (rad, mm, mm).
+    y : array, shape (B, G, 3)
+        Measured vectors in {B}: mm (positions), mm/s (velocity).
+    c : array, shape (B, G, 3)
+        Model vectors at delta_1 = 0: the model predicts ``Rz(q_r + delta_L) c``.
+    R, R_bar : arrays, shape (B, G, 3, 3)
+        Segmentation-noise covariance of each group in {B}, and its rotation-invariant part
+        (:func:`rotation_invariant`, the noise both filters use).
+    JK : array, shape (B, G, 3, 5)
+        ``[J K]``, the shape's expansion in the deviation, ``c + JK expansion_basis(dq)``
+        (:class:`ShapeExpansion`; the velocity's is minus the decorrelation gain times the
+        tip's).
+    present : array of bool, shape (B, G)
+    K_bar : array, shape (B, 3, 3)
+        Rotation-invariant part of the decorrelation gain of the velocity, 1/s.
+    u_norm_mm_s : array, shape (B,)
+        Magnitude of the modelled tip velocity, mm/s.
+    """
+
+    q: Array
+    y: Array
+    c: Array
+    R: Array
+    JK: Array
+    present: Array
+    R_bar: Array
+    n_positions: int
+    has_velocity_group: bool
+    K_bar: Array
+    u_norm_mm_s: Array
+
+    @property
+    def n_trials(self) -> int:
+        return int(self.y.shape[0])
+
+    @property
+    def J(self) -> Array:
+        return self.JK[..., :2]
+
+    @property
+    def K(self) -> Array:
+        return self.JK[..., 2:]
+
+    @property
+    def q_r(self) -> Array:
+        return self.q[:, 0]
+
+    def select(self, idx: Array) -> FrameGroups:
+        """The groups of the trials ``idx`` only."""
+        arrays = ("q", "y", "c", "R", "JK", "present", "R_bar", "K_bar", "u_norm_mm_s")
+        return replace(self, **{name: getattr(self, name)[idx] for name in arrays})
+
+    dim = 3
+
+    @property
+    def z(self) -> Array:
+        return self.y
+
+    def radius_mm(self) -> Array:
+        """Horizontal radius of the present positions' model vectors, mm (B,)."""
+        P = self.n_positions
+        r2 = np.sum(self.c[:, :P, :2] ** 2, -1)
+        return np.sqrt(np.sum(self.present[:, :P] * r2, 1))
+
+    def is_tip_group(self, g: int) -> bool:
+        """Group 0 is the tip."""
+        return g == 0
+
+    def noise(self, b: Array) -> Array:
+        """The noise covariance the filters use (model frame), (r, G, 3, 3)."""
+        return self.R_bar[b]
+
+    def measured(self, b: Array, about: Array) -> Array:
+        """The measured vectors in the model frame at angle ``about`` (r,):
+        ``Rz(q_r + about)^T y``, (r, G, 3)."""
+        angle = self.q[b, 0] + about
+        c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+        y = self.y[b]
+        out = np.empty_like(y)
+        out[..., 0] = c * y[..., 0] + s * y[..., 1]
+        out[..., 1] = c * y[..., 1] - s * y[..., 0]
+        out[..., 2] = y[..., 2]
+        return out
+
+    def predict(
+        self,
+        b: Array,
+        sigmas: Array,
+        rate: int | None = None,
+        deviation: int | None = None,
+        about: Array | None = None,
+    ) -> Array:
+        """``Rz(x_0 - about) (c + J dq + K quadratic_terms(dq))`` for sigma points (r, S, n) of
+        trials b, in the model frame at angle ``about`` (r,) (None: ``Rz(q_r + x_0)``, in
+        {B}): (r, S, G, 3).
+
+        ``deviation``: index of dq = (dq_p, dq_d) in the state; ``rate``: index of the torsion
+        rate, which adds ``rate e_z x c_tip`` to the velocity group.
+        """
+        whole = b.size == self.y.shape[0]
+        c = self.c if whole else self.c[b]
+        r, S = sigmas.shape[:2]
+        if deviation is not None:
+            basis = expansion_basis(sigmas[..., deviation : deviation + 2])
+            shape = c[:, None] + np.einsum(
+                "rgij,rsj->rsgi", self.JK if whole else self.JK[b], basis
+            )
+        else:
+            shape = np.broadcast_to(c[:, None], (r, S) + c.shape[1:])
+        if rate is not None and self.has_velocity_group:
+            shape = shape.copy()
+            shape[..., -1, 0] -= sigmas[..., rate] * c[:, None, 0, 1]
+            shape[..., -1, 1] += sigmas[..., rate] * c[:, None, 0, 0]
+        if about is None:
+            angle = self.q[b, 0][:, None] + sigmas[..., 0]
+        else:
+            angle = sigmas[..., 0] - about[:, None]
+        co, si = np.cos(angle)[..., None], np.sin(angle)[..., None]
+        out = np.empty((r, S) + c.shape[1:])
+        out[..., 0] = co * shape[..., 0] - si * shape[..., 1]
+        out[..., 1] = si * shape[..., 0] + co * shape[..., 1]
+        out[..., 2] = shape[..., 2]
+        return out
+
+    def without_velocity(self, mask: Array) -> FrameGroups:
+        """The same groups with the velocity group removed where ``mask`` (B,) is True."""
+        if not self.has_velocity_group or not np.any(mask):
+            return self
+        present = self.present.copy()
+        present[mask, -1] = False
+        return replace(self, present=present)
+
+
+@dataclass(frozen=True)
+class ViewGroups:
+    """One trial's points segmented in single views (unsynchronised views), 2-D groups.
+
+    ``parts`` holds, per view, ``(view, C, R_w_b, o_b_w_mm)`` with C the model vectors of its
+    points; the groups are the points of every part in order.
+    """
+
+    q: Array  # (1, 3)
+    z: Array  # (1, G, 2)
+    R: Array  # (1, G, 2, 2)
+    present: Array  # (1, G)
+    parts: tuple
+
+    dim = 2
+    n_positions = 0
+    has_velocity_group = False
+
+    @property
+    def q_r(self) -> Array:
+        return self.q[:, 0]
+
+    def radius_mm(self) -> Array:
+        r2 = sum(float(np.sum(C[:, :2] ** 2)) for _, C, _, _ in self.parts)
+        return np.array([math.sqrt(r2)])
+
+    def is_tip_group(self, g: int) -> bool:
+        return False
+
+    def noise(self, b: Array) -> Array:
+        return self.R[b]
+
+    def measured(self, b: Array, about: Array) -> Array:
+        return self.z[b]
+
+    def predict(
+        self,
+        b: Array,
+        sigmas: Array,
+        rate: int | None = None,
+        deviation: int | None = None,
+        about: Array | None = None,
+    ) -> Array:
+        """Projections of ``R_w_b Rz(q_r + x_0) c + o_b_w`` in each view: (r, S, G, 2).
+
+        (Image coordinates: ``about`` does not apply; single views carry no deviation
+        Jacobian, so ``rate`` and ``deviation`` are unused.)
+        """
+        angle = self.q[0, 0] + sigmas[..., 0]
+        c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+        parts = []
+        for view, C, R_w_b, o_b_w in self.parts:
+            points_b = np.stack(
+                [c * C[:, 0] - s * C[:, 1], s * C[:, 0] + c * C[:, 1],
+                 np.broadcast_to(C[:, 2], c.shape[:-1] + (C.shape[0],))], -1
+            )  # fmt: skip
+            parts.append(np.asarray(view.project(points_b @ R_w_b.T + o_b_w), dtype=float))
+        return np.concatenate(parts, axis=-2)
+
+    def select(self, idx: Array) -> ViewGroups:
+        return self
+
+
+def velocity_offered(settings, tip_fused: Array) -> Array:
+    """Which of B filters fuse a velocity in their next step (``settings``: UKFSettings).
+
+    A finite-difference velocity decorrelated from its frame's tip measures the previous
+    tip: it is offered only where the previous step fused no tip (``tip_fused`` (B,)).
+    """
+    if not settings.use_velocity:
+        return np.zeros(tip_fused.shape, dtype=bool)
+    if settings.velocity_is_finite_difference:
+        return ~tip_fused
+    return np.ones(tip_fused.shape, dtype=bool)
+
+
+def offered_velocity(frame, settings, tip_fused: Array):
+    """The frame without the velocity where :func:`velocity_offered` says no."""
+    if not isinstance(frame, FrameGroups) or not frame.has_velocity_group:
+        return frame
+    return frame.without_velocity(~velocity_offered(settings, tip_fused))
+
+
+def rotation_invariant(A: Array) -> Array:
+    """The part of 3x3 matrices (..., 3, 3) invariant under rotations about z.
+
+    ``diag((A_xx + A_yy) / 2, (A_xx + A_yy) / 2, A_zz)`` plus the antisymmetric horizontal
+    part (zero for a covariance).
+    """
+    out = np.zeros_like(A)
+    horizontal = 0.5 * (A[..., 0, 0] + A[..., 1, 1])
+    skew = 0.5 * (A[..., 1, 0] - A[..., 0, 1])
+    out[..., 0, 0] = out[..., 1, 1] = horizontal
+    out[..., 1, 0] = skew
+    out[..., 0, 1] = -skew
+    out[..., 2, 2] = A[..., 2, 2]
+    return out
+
+
+def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array, Array]:
+    """c, J and K at q by central differences (six shape evaluations)."""
+    h = DEVIATION_STEP_MM
+
+    def points(dp: float, dd: float) -> Array:
+        shape = catheter.shape_vectors(q + np.array([0.0, dp, dd]))
+        return np.concatenate([shape.c_tip_mm[None], shape.c_markers_mm])
+
+    c = points(0.0, 0.0)
+    plus_p, minus_p = points(h, 0.0), points(-h, 0.0)
+    plus_d, minus_d = points(0.0, h), points(0.0, -h)
+    both = points(h, h)
+    J = np.stack([(plus_p - minus_p) / (2 * h), (plus_d - minus_d) / (2 * h)], -1)
+    K = np.stack(
+        [
+            0.5 * (plus_p - 2 * c + minus_p) / h**2,
+            (both - plus_p - plus_d + c) / h**2,
+            0.5 * (plus_d - 2 * c + minus_d) / h**2,
+        ],
+        -1,
+    )
+    return c, J, K
+
+
+class ShapeExpansion:
+    """Model vectors of the tip and the markers and their second-order expansion in a joint
+    deviation: ``c(q + dq) = c + J dq + K [dq_p^2, dq_p dq_d, dq_d^2]``.
+
+    A deviation of 0.2 mm already turns the tip by about 20 degrees: the linear term alone
+    errs by 0.5 mm there, with the quadratic term by 0.05 mm (default model). The expansion
+    is computed by central differences (step ``DEVIATION_STEP_MM``, six shape evaluations)
+    at the nodes of a grid of ``GRID_MM`` in (q_p, q_d), kept, and carried to q by the same
+    expansion (``c`` to within ``37 mm/mm^3 x (GRID_MM / 2)^3 / 6``, about 1e-5 mm). A
+    deterministic function of q: the live filter and the batched one get the same numbers.
+
+    Parameters
+    ----------
+    catheter : Catheter
+    """
+
+    GRID_MM = 0.02
+    MAX_NODES = 50_000
+
+    def __init__(self, catheter: Catheter) -> None:
+        self.catheter = catheter
+        self._nodes: dict[tuple[int, int], tuple[Array, Array, Array]] = {}
+
+    def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
+        found = self._nodes.get(key)
+        if found is None:
+            if len(self._nodes) >= self.MAX_NODES:
+                self._nodes.clear()
+            q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
+            found = self._nodes[key] = _expansion(self.catheter, q)
+        return found
+
+    def __call__(self, q: Array) -> tuple[Array, Array, Array]:
+        """c (B, P, 3), J (B, P, 3, 2) and K (B, P, 3, 3) at joint values q (B, 3)."""
+        q = np.asarray(q, dtype=float)
+        keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
+        delta = q[:, 1:] - keys * self.GRID_MM
+        if q.shape[0] == 1:
+            c, J, K = (a[None] for a in self.node((int(keys[0, 0]), int(keys[0, 1]))))
+        else:
+            distinct, index = np.unique(keys, axis=0, return_inverse=True)
+            nodes = [self.node((int(a), int(b))) for a, b in distinct]
+            c, J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in range(3))
+        basis = expansion_basis(delta)[:, None, :, None]  # (B, 1, 5, 1)
+        c = c + (J @ basis[:, :, :2] + K @ basis[:, :, 2:])[..., 0]
+        return c, deviation_jacobian(J, K, delta[:, None]), K
+
+
+def expansion_basis(dq: Array) -> Array:
+    """``[dq_p, dq_d, dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 5), the
+    basis of ``[J K]``."""
+    out = np.empty(dq.shape[:-1] + (5,))
+    out[..., :2] = dq
+    p, d = dq[..., 0], dq[..., 1]
+    out[..., 2] = p * p
+    out[..., 3] = p * d
+    out[..., 4] = d * d
+    return out
+
+
+def quadratic_terms(dq: Array) -> Array:
+    """``[dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 3)."""
+    return expansion_basis(dq)[..., 2:]
+
+
+def deviation_jacobian(J: Array, K: Array, dq: Array) -> Array:
+    """Jacobian of ``J dq + K quadratic_terms(dq)`` at dq: ``J + K dquad/ddq`` (..., 3, 2).
+
+    ``dq`` (..., 2) broadcasts against the leading axes of J (..., 3, 2) and K (..., 3, 3).
+    """
+    p, d = dq[..., 0, None], dq[..., 1, None]
+    lead = np.broadcast_shapes(J.shape[:-2], p.shape[:-1])
+    out = np.broadcast_to(J, lead + J.shape[-2:]).copy()
+    out[..., 0] += 2 * p * K[..., 0] + d * K[..., 1]
+    out[..., 1] += p * K[..., 1] + 2 * d * K[..., 2]
+    return out
+
+
+def _finite_rows(a: Array, axes: tuple[int, ...]) -> Array:
+    return np.isfinite(a).all(axis=axes)
+
+
+def assemble_groups(
+    q: Array,
+    q_dot: Array | None,
+    c: Array,
+    J: Array,
+    K: Array,
+    tip: Array | None,
+    tip_cov: Array | None,
+    markers: Array | None,
+    markers_cov: Array | None,
+    velocity: Array | None = None,
+    velocity_cov: Array | None = None,
+    cross: Array | None = None,
+) -> FrameGroups:
+    """The groups of one frame of B trials from reconstructed 3-D data.
+
+    Parameters
+    ----------
+    q, q_dot : arrays (B, 3)
+        Joint values and rates (``q_dot`` None or NaN: no velocity).
+    c, J, K : arrays (B, P, 3), (B, P, 3, 2), (B, P, 3, 3)
+        :class:`ShapeExpansion` of every trial.
+    tip, tip_cov : arrays (B, 3), (B, 3, 3), or None
+    markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3), or None
+        NaN rows: markers not found.
+    velocity, velocity_cov, cross : arrays (B, 3), (B, 3, 3), (B, 3, 3), optional
+        Tip velocity (mm/s), its covariance and its cross-covariance with the tip; a
+        velocity group exists when ``velocity`` is given (present where finite).
+    """
+    B, P = c.shape[:2]
+    has_v = velocity is not None
+    G = P + has_v
+    eye = np.eye(3)
+    y = np.zeros((B, G, 3))
+    R = np.empty((B, G, 3, 3))
+    R[:] = eye
+    has_tip = tip is not None and tip_cov is not None
+    has_markers = markers is not None and markers_cov is not None and P > 1
+    if has_tip:
+        y[:, 0] = tip
+        R[:, 0] = tip_cov
+    if has_markers:
+        y[:, 1:P] = markers
+        R[:, 1:P] = markers_cov
+    present = np.isfinite(y).all(-1) & np.isfinite(R).all(axis=(-2, -1))
+    present[:, 0] &= has_tip
+    present[:, 1:P] &= has_markers
+    if not present[:, :P].all():
+        absent = ~present
+        absent[:, P:] = False
+        y[absent] = 0.0
+        R[absent] = eye
+    JK = np.zeros((B, G, 3, 5))
+    JK[:, :P, :, :2] = J
+    JK[:, :P, :, 2:] = K
+    C = c
+    K_bar = np.zeros((B, 3, 3))
+    u_norm = np.zeros(B)
+    if has_v:
+        C = np.zeros((B, G, 3))
+        C[:, :P] = c
+        rates = np.full((B, 3), np.nan) if q_dot is None else q_dot
+        ok = (
+            _finite_rows(velocity, (-1,))
+            & _finite_rows(velocity_cov, (-2, -1))
+            & _finite_rows(rates, (-1,))
+        )
+        present[:, -1] = ok
+        if ok.any():
+            # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot e_z x c + J (q_p_dot, q_d_dot)].
+            c_tip = c[:, 0]
+            u = np.zeros((B, 3))
+            u[:, 0] = -c_tip[:, 1] * rates[:, 0]
+            u[:, 1] = c_tip[:, 0] * rates[:, 0]
+            u = np.nan_to_num(u + (J[:, 0] @ rates[:, 1:, None])[..., 0])
+            v_bar, cov_bar, gain = decorrelated_velocity(
+                np.where(ok[:, None], velocity, 0.0),
+                np.where(ok[:, None, None], velocity_cov, eye),
+                None if cross is None else np.where(ok[:, None, None], cross, np.nan),
+                y[:, 0], R[:, 0], present[:, 0],
+            )  # fmt: skip
+            K_bar = rotation_invariant(gain)
+            y[ok, -1] = v_bar[ok]
+            R[ok, -1] = cov_bar[ok]
+            C[ok, -1] = (u - (K_bar @ c_tip[..., None])[..., 0])[ok]
+            JK[ok, -1] = -(K_bar @ JK[:, 0])[ok]
+            u_norm = np.where(ok, np.linalg.norm(u, axis=-1), 0.0)
+    return FrameGroups(
+        q=np.asarray(q, dtype=float), y=y, c=C, R=R, JK=JK, present=present,
+        R_bar=rotation_invariant(R), n_positions=P,
+        has_velocity_group=has_v, K_bar=K_bar, u_norm_mm_s=u_norm,
+    )  # fmt: skip
+
+
+def decorrelated_velocity(
+    velocity: Array, velocity_cov: Array, cross: Array | None, tip: Array, tip_cov: Array,
+    has_tip: Array,
+) -> tuple[Array, Array, Array]:
+    """``v - K tip`` and its covariance, with ``K = cov(v, tip) cov(tip)^-1`` (B trials).
+
+    Returns the decorrelated velocity (B, 3), its covariance ``cov(v) - K cov(v, tip)^T``
+    (B, 3, 3) and K (B, 3, 3); trials without a tip or a finite cross-covariance keep the
+    velocity (K = 0).
+    """
+    B = velocity.shape[0]
+    K = np.zeros((B, 3, 3))
+    if cross is None:
+        return velocity, velocity_cov, K
+    usable = has_tip & _finite_rows(cross, (-2, -1))
+    if not usable.any():
+        return velocity, velocity_cov, K
+    C = np.where(usable[:, None, None], cross, 0.0)
+    # K = C S^-1, i.e. K^T = S^-1 C^T (S symmetric): one solve per trial.
+    S = np.where(usable[:, None, None], tip_cov, np.eye(3))
+    K = np.swapaxes(np.linalg.solve(S, np.swapaxes(C, -1, -2)), -1, -2)
+    v_bar = velocity - np.einsum("bij,bj->bi", K, tip)
+    cov = velocity_cov - K @ np.swapaxes(C, -1, -2)
+    return v_bar, 0.5 * (cov + np.swapaxes(cov, -1, -2)), K
+
+
+def model_error_covariance(
+    groups: FrameGroups,
+    white_mm: float,
+    velocity_relative_error: float,
+    process_var_rad2: Array,
+    dt_s: Array,
+) -> Array:
+    """White model-error covariance ``M`` of every group in the model frame, (B, G, 3, 3).
+
+    Parameters
+    ----------
+    white_mm : float
+        Joint-equivalent white model error sigma_w, mm.
+    velocity_relative_error : float
+        Relative error of the modelled tip velocity.
+    process_var_rad2 : array, shape (B,)
+        Variance of the torsion change over this frame interval, rad^2 (0 when the state
+        carries the rate).
+    dt_s : array, shape (B,)
+        The frame interval, s.
+    """
+    J = groups.J
+    M = (white_mm * white_mm) * (J @ np.swapaxes(J, -1, -2))
+    if groups.has_velocity_group:
+        c_tip = groups.c[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rate_var = np.where(dt_s > 0, process_var_rad2 / dt_s**2, 0.0)
+        tangent = np.stack([-c_tip[:, 1], c_tip[:, 0], np.zeros_like(c_tip[:, 0])], -1)
+        M[:, -1] += (
+            (velocity_relative_error * groups.u_norm_mm_s)[:, None, None] ** 2 * np.eye(3)
+            + rate_var[:, None, None] * tangent[:, :, None] * tangent[:, None, :]
+        )
+    return M
+
+
+def deviation_prior(q: Array, joint_error_mm: float, gain_error: float) -> Array:
+    """Prior variance of the joint-equivalent deviation of (q_p, q_d), mm^2, (B, 2)."""
+    bend = gain_error * q[:, 1:]
+    return joint_error_mm * joint_error_mm + bend * bend
+
+
+def deviation_decay(moved_mm: Array, length_mm: float) -> Array:
+    """Correlation of the deviation across a frame in which the joints moved ``moved_mm``.
+
+    An Ornstein-Uhlenbeck process in the joint travel: ``exp(-moved / length)``, so that the
+    deviation forgets over ``length_mm`` of joint motion and stays while the joints hold.
+    """
+    return np.exp(-np.abs(moved_mm) / length_mm)
+
+
+def group_coefficients(y: Array, c: Array, W: Array, q_r: Array) -> Array:
+    """``d^2(delta_L) = e^T W e`` of every group as a trigonometric polynomial.
+
+    ``e = Rz(q_r + delta_L)^T y - c`` is affine in (cos, sin) of the angle, so ``d^2 = k +
+    a1 cos(delta_L) + b1 sin(delta_L) + a2 cos(2 delta_L) + b2 sin(2 delta_L)``.
+
+    Parameters
+    ----------
+    y, c : arrays, shape (B, G, 3)
+    W : array, shape (B, G, 3, 3)
+        Inverse of the model-frame covariance of each group.
+    q_r : array, shape (B,)
+
+    Returns
+    -------
+    coefficients : array, shape (B, G, 5)
+        ``[k, a1, b1, a2, b2]``.
+    """
+    zero = np.zeros_like(y[..., 0])
+    p = np.stack([y[..., 0], y[..., 1], zero], -1)  # cos(delta_1) part of Rz^T y
+    s = np.stack([y[..., 1], -y[..., 0], zero], -1)  # sin(delta_1) part
+    r0 = np.stack([-c[..., 0], -c[..., 1], y[..., 2] - c[..., 2]], -1)
+    Wp = np.einsum("bgij,bgj->bgi", W, p)
+    Ws = np.einsum("bgij,bgj->bgi", W, s)
+    pWp = np.sum(p * Wp, -1)
+    sWs = np.sum(s * Ws, -1)
+    pWs = np.sum(s * Wp, -1)
+    a1 = 2 * np.sum(r0 * Wp, -1)
+    b1 = 2 * np.sum(r0 * Ws, -1)
+    k = 0.5 * (pWp + sWs) + np.einsum("bgi,bgij,bgj->bg", r0, W, r0)
+    a2 = 0.5 * (pWp - sWs)
+    b2 = pWs
+    # From delta_1 = q_r + delta_L to delta_L: rotate each (cos, sin) pair by q_r or 2 q_r.
+    c1, s1 = np.cos(q_r)[:, None], np.sin(q_r)[:, None]
+    c2, s2 = c1 * c1 - s1 * s1, 2 * s1 * c1
+    return np.stack(
+        [k, a1 * c1 + b1 * s1, b1 * c1 - a1 * s1, a2 * c2 + b2 * s2, b2 * c2 - a2 * s2], -1
+    )
+
+
+def trig_table(angles: Array) -> Array:
+    """Rows ``1, cos, sin, cos 2x, sin 2x`` of angles (N,): (5, N)."""
+    return np.stack(
+        [np.ones_like(angles), np.cos(angles), np.sin(angles), np.cos(2 * angles),
+         np.sin(2 * angles)]
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """Global fit of one frame's summed cost ``f = sum_g d_g^2`` (B trials).
+
+    Attributes
+    ----------
+    delta_L_rad : array (B,)
+        Minimiser.
+    cost : array (B,)
+        ``f`` at the minimiser (chi-square with ``dof - 1`` degrees of freedom).
+    information : array (B,)
+        ``f'' / 2`` at the minimiser, 1/rad^2 (``1/std^2``).
+    sign_evidence : array (B,)
+        ``min f`` over the half circle away from the minimiser minus ``cost``: how much
+        better the fit is than any fit on the opposite side (0 for a straight catheter).
+    dof : array of int (B,)
+        Measurement dimension.
+    """
+
+    delta_L_rad: Array
+    cost: Array
+    information: Array
+    sign_evidence: Array
+    dof: Array
+
+    @property
+    def std_rad(self) -> Array:
+        with np.errstate(divide="ignore"):
+            return np.where(self.information > 0, 1.0 / np.sqrt(self.information), np.inf)
+
+
+def fit_frame(coefficients: Array, dof: Array, newton_steps: int = 4) -> FrameFit:
+    """Global minimum of ``f(delta) = coefficients . [1, cos, sin, cos 2, sin 2]`` (B, 5).
+
+    A degree-two trigonometric polynomial has at most two minima; 64 samples find the basin of
+    the global one and Newton's method polishes it.
+    """
+    f = coefficients @ _FIT_TABLE  # (B, 64)
+    best = np.argmin(f, axis=1)
+    x = _FIT_ANGLES[best]
+    k, a1, b1, a2, b2 = np.moveaxis(coefficients, -1, 0)
+    for _ in range(newton_steps):
+        c1, s1, c2, s2 = np.cos(x), np.sin(x), np.cos(2 * x), np.sin(2 * x)
+        d1 = -a1 * s1 + b1 * c1 - 2 * a2 * s2 + 2 * b2 * c2
+        d2 = -a1 * c1 - b1 * s1 - 4 * a2 * c2 - 4 * b2 * s2
+        x = np.where(d2 > 0, x - d1 / np.where(d2 > 0, d2, 1.0), x)
+    c1, s1, c2, s2 = np.cos(x), np.sin(x), np.cos(2 * x), np.sin(2 * x)
+    cost = k + a1 * c1 + b1 * s1 + a2 * c2 + b2 * s2
+    curvature = -a1 * c1 - b1 * s1 - 4 * a2 * c2 - 4 * b2 * s2
+    far = np.abs(wrap(_FIT_ANGLES[None, :] - x[:, None])) > 0.5 * math.pi
+    other = np.min(np.where(far, f, np.inf), axis=1)
+    return FrameFit(
+        delta_L_rad=wrap(x),
+        cost=np.maximum(cost, 0.0),
+        information=np.maximum(0.5 * curvature, 0.0),
+        sign_evidence=np.maximum(other - cost, 0.0),
+        dof=np.asarray(dof),
+    )
+
+
+def mixture_log_likelihood(
+    d2: Array, dim: int, outlier_probability: float, outlier_scale: float
+) -> Array:
+    """log of ``(1 - p) exp(-d2/2) + p s^-dim exp(-d2 / (2 s^2))`` without the Gaussian's
+    normalisation (add ``-0.5 log det(2 pi Sigma)``), stable for any ``d2 >= 0``.
+
+    With ``p = 0`` it is the Gaussian ``-d2/2``.
+    """
+    if outlier_probability <= 0.0:
+        return -0.5 * d2
+    log_outlier = math.log(outlier_probability) - dim * math.log(outlier_scale)
+    ratio = (1.0 - outlier_probability) / math.exp(log_outlier)
+    shrink = 1.0 - outlier_scale**-2
+    return log_outlier - 0.5 * d2 / outlier_scale**2 + np.log1p(ratio * np.exp(-0.5 * shrink * d2))
+
+
+def outlier_threshold(dim: int, outlier_probability: float, outlier_scale: float) -> float:
+    """The squared residual beyond which a group is more likely an outlier than not: where
+    :func:`inlier_probability` falls to one half (inf without outliers)."""
+    if outlier_probability <= 0.0:
+        return math.inf
+    odds = math.log((1.0 - outlier_probability) / outlier_probability)
+    return 2.0 * (odds + dim * math.log(outlier_scale)) / (1.0 - outlier_scale**-2)
+
+
+def inlier_probability(
+    d2: Array, dim: int, outlier_probability: float, outlier_scale: float
+) -> Array:
+    """Posterior probability that a group with squared Mahalanobis residual d2 is no outlier."""
+    if outlier_probability <= 0.0:
+        return np.ones_like(d2)
+    log_ratio = (
+        math.log(outlier_probability / (1.0 - outlier_probability))
+        - dim * math.log(outlier_scale)
+        + 0.5 * (1.0 - outlier_scale**-2) * np.minimum(d2, 1e4)
+    )
+    return 1.0 / (1.0 + np.exp(np.minimum(log_ratio, 700.0)))
+
+
+def process_variance(
+    noise_rad2_s: float, rotation_gain_rad: float, dt_s: Array, base_turn_rad: Array
+) -> Array:
+    """Variance of the torsion change over dt with the base turned by ``base_turn_rad``."""
+    return noise_rad2_s * dt_s + rotation_gain_rad * np.abs(base_turn_rad)
+
+
+def jump_probability(
+    rate_per_s: float, per_rad: float, dt_s: Array, base_turn_rad: Array
+) -> Array:
+    """Probability that the torsion jumped (anywhere on the circle) over the interval."""
+    hazard = rate_per_s * dt_s + per_rad * np.abs(base_turn_rad)
+    return -np.expm1(-hazard)
+
+
+__all__ = [
+    "FrameFit",
+    "FrameGroups",
+    "ViewGroups",
+    "decorrelated_velocity",
+    "deviation_jacobian",
+    "deviation_decay",
+    "deviation_prior",
+    "expansion_basis",
+    "fit_frame",
+    "group_coefficients",
+    "inlier_probability",
+    "assemble_groups",
+    "ShapeExpansion",
+    "jump_probability",
+    "mixture_log_likelihood",
+    "offered_velocity",
+    "outlier_threshold",
+    "velocity_offered",
+    "model_error_covariance",
+    "process_variance",
+    "quadratic_terms",
+    "rotation_invariant",
+    "trig_table",
+    "wrap",
+]

@@ -1,0 +1,759 @@
+"""The rules of the bending-plane UKF, written once for B independent filters at a time.
+
+:class:`FilterBank` holds B filters (a leading trial axis; the live filter is a bank of one)
+and steps all of them through one frame. The same code serves
+:class:`~tracker.estimators.ukf.BendingPlaneUKF` (B = 1, any data) and
+:func:`~tracker.estimators.ukf_batch.run_ukf_batch` (the Monte Carlo studies).
+
+Each filter carries up to ``max_hypotheses`` Gaussian hypotheses of its state (a Gaussian
+sum: the held estimate and a restarted one), each a UKF. Per frame:
+
+1. **Predict** every hypothesis with the process model (linear, so its unscented transform
+   is exact: ``F x``, ``F P F^T + Q``), delta_L wrapped, the std capped.
+2. **Gate**: per measured group (tip, marker, velocity) the posterior probability that it is
+   no gross error, from its residual against the hypothesis and the group's innovation
+   covariance (noise + model error + prior spread, from van der Merwe's sigma points with
+   the weights of filterpy's :class:`~filterpy.kalman.MerweScaledSigmaPoints`); groups below
+   one half are rejected, the others fused in one UKF update. The velocity has its own gate
+   and its own model error, and a finite-difference velocity is offered only after a step
+   that fused no tip.
+3. **Restart**: when the leading hypothesis rejects a whole frame whose closed form is
+   informative, unambiguous (not nearly straight relative to noise plus model error) and
+   self-consistent, a hypothesis starts there with prior weight ``jump probability`` times
+   the frame's marginal likelihood under a uniform angle, against the held hypotheses'
+   marginal likelihoods: the following frames keep what they support. The first filter
+   state and a state whose std has outgrown ``reacquire_std_rad`` come from the same closed
+   form, under the same conditions.
+4. **Mismatch**: the joint-equivalent deviation of the shape is part of the state
+   (estimated online, ``Flag.MODEL_MISMATCH`` when it is beyond three prior stds); frames
+   rejected as a whole ``reacquire_after_rejections`` times in a row with an informative but
+   inconsistent closed form restart with the std and the noise inflated by their misfit.
+5. **Repair**: a predicted covariance that is not positive definite (or not finite) is
+   replaced by the last good state with a re-initialised covariance; an innovation
+   covariance that cannot be factorised leaves the hypothesis at its prediction.
+
+The reported estimate is the moment-matched Gaussian of the hypotheses (circular mean), so a
+filter torn between two hypotheses says so with a large std.
+
+filterpy's role: its sigma-point weights are used here, and its
+:class:`~filterpy.kalman.UnscentedKalmanFilter` is the step-by-step reference of the tests
+(with the heavy tail and the model error off, a predict and an update of a bank of one equal
+filterpy's). Its filter object is not used at run time: it keeps one filter in mutable
+attributes and updates with every measurement it is given, whereas these rules need the
+per-group innovation statistics before the update, several hypotheses per filter and a
+leading batch axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import MerweScaledSigmaPoints
+from scipy.linalg import lapack
+
+from tracker.estimators.measurement import (
+    FrameGroups,
+    deviation_decay,
+    deviation_prior,
+    fit_frame,
+    group_coefficients,
+    jump_probability,
+    model_error_covariance,
+    offered_velocity,
+    outlier_threshold,
+    process_variance,
+    velocity_offered,
+    wrap,
+)
+from tracker.estimators.ukf_settings import UKFSettings, gate_threshold
+from tracker.types import Flag
+
+Array = np.ndarray
+
+# Relative jitter added (times the mean variance) before a second Cholesky attempt.
+COVARIANCE_JITTER = 1e-9
+# Absolute floor of that jitter, rad^2 (or the squared measurement unit).
+COVARIANCE_JITTER_FLOOR = 1e-15
+# Per accepted update, the excess of the model-mismatch noise inflation is multiplied by this.
+MISMATCH_DECAY = 0.99
+# The model-mismatch inflation of the measurement covariance never exceeds this factor.
+MAX_MISMATCH_SCALE = 1e4
+_LOG_2PI = math.log(2.0 * math.pi)
+
+_F = {name: flag.value for name, flag in Flag.__members__.items()}
+
+
+class CovarianceError(np.linalg.LinAlgError):
+    """A covariance stayed non-positive-definite after symmetrisation and jitter."""
+
+
+def _jittered(A: Array) -> Array:
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    scale = np.maximum(np.trace(A, axis1=-2, axis2=-1) / A.shape[-1], 0.0)
+    jitter = np.maximum(COVARIANCE_JITTER * scale, COVARIANCE_JITTER_FLOOR)
+    return A + jitter[..., None, None] * np.eye(A.shape[-1])
+
+
+def cholesky(A: Array) -> tuple[Array, Array]:
+    """Lower Cholesky factors of a stack (..., m, m) and which succeeded (retried once with
+    the documented jitter, ``COVARIANCE_JITTER`` times the mean variance)."""
+    lead = A.shape[:-2]
+    if A.ndim == 3 and A.shape[0] == 1:
+        # One matrix: LAPACK directly (numpy's stacked wrappers cost ten times the work).
+        c, info = lapack.dpotrf(A[0], lower=1, clean=1)
+        if info == 0:
+            return c[None], np.ones(1, dtype=bool)
+    else:
+        try:
+            return np.linalg.cholesky(A), np.ones(lead, dtype=bool)
+        except np.linalg.LinAlgError:
+            pass
+    flat = A.reshape((-1,) + A.shape[-2:])
+    L = np.zeros_like(flat)
+    ok = np.zeros(flat.shape[0], dtype=bool)
+    for i in np.flatnonzero(np.isfinite(flat).all(axis=(-2, -1))):
+        for attempt in (flat[i], _jittered(flat[i])):
+            try:
+                L[i] = np.linalg.cholesky(attempt)
+                ok[i] = True
+                break
+            except np.linalg.LinAlgError:
+                continue
+    return L.reshape(A.shape), ok.reshape(lead)
+
+
+def sigma_sqrt(A: Array) -> Array:
+    """Upper-triangular square root U (U^T U = A) of one matrix, with the documented jitter.
+
+    Raises CovarianceError (a LinAlgError) when ``A`` is not positive definite even after it.
+    """
+    A = np.asarray(A, dtype=float)
+    if A.shape == (1, 1):
+        a = float(A[0, 0])
+        if not math.isfinite(a) or a < -COVARIANCE_JITTER_FLOOR:
+            raise CovarianceError(f"variance {a} is not a variance")
+        return np.array([[math.sqrt(max(a, COVARIANCE_JITTER_FLOOR))]])
+    L, ok = cholesky(A)
+    if not ok:
+        raise CovarianceError("covariance is not positive definite, even after jitter")
+    return L.T
+
+
+def spd_inverse(A: Array) -> Array:
+    """Inverse of symmetric positive-definite matrices (..., m, m) by Cholesky solves."""
+    L, ok = cholesky(np.asarray(A, dtype=float))
+    if not np.all(ok):
+        raise CovarianceError("covariance could not be inverted")
+    inverse = np.linalg.solve(L, np.broadcast_to(np.eye(L.shape[-1]), L.shape))
+    return np.swapaxes(inverse, -1, -2) @ inverse
+
+
+def check_measurement_covariance(noise: Array, present: Array) -> None:
+    """ValueError naming the problem if a present group's noise is not usable (its
+    rotation-invariant part, which the filters use, must be positive definite)."""
+    diagonal = np.diagonal(noise, axis1=-2, axis2=-1)
+    if not np.all((diagonal > 0).all(-1) | ~present):
+        raise ValueError(
+            "measurement covariance of the frame is not positive definite (or not finite): "
+            "check tip_cov_b, markers_cov_b, velocity_cov_b, velocity_tip_cov_b or the view "
+            "covariances"
+        )
+
+
+@dataclass
+class StepResult:
+    """What a bank step reports per trial (arrays of length B)."""
+
+    delta_L_rad: Array
+    std_rad: Array
+    flags: Array
+    nis: Array
+    nis_dof: Array
+    rejected: Array
+    radius_mm: Array
+    innovation: list
+
+
+@dataclass
+class _Update:
+    """What the update did, per updated hypothesis (rows: trial ``b``, slot ``h``)."""
+
+    b: Array
+    h: Array
+    status: Array
+    nis: Array
+    dof: Array
+    rejected: Array
+    inlier: Array  # (r, G)
+    fused_tip: Array
+    innovation: list | None
+
+    def leading(self, B: int, lead: Array, name: str, fill) -> Array:
+        """Field ``name`` of each trial's hypothesis ``lead`` (B,); ``fill`` if not updated."""
+        values = getattr(self, name)
+        out = np.full((B,) + values.shape[1:], fill, dtype=values.dtype)
+        mine = self.h == lead[self.b]
+        out[self.b[mine]] = values[mine]
+        return out
+
+
+class FilterBank:
+    """B independent bending-plane UKFs, each a Gaussian sum of up to ``max_hypotheses``.
+
+    The state of a hypothesis is ``[delta_L]``, then ``delta_L_dot`` with ``include_rate``,
+    then the joint-equivalent deviation ``(dq_p, dq_d)`` (mm) when the settings estimate it.
+
+    Parameters
+    ----------
+    settings : UKFSettings
+    n_trials : int
+    """
+
+    def __init__(self, settings: UKFSettings, n_trials: int = 1) -> None:
+        s = self.settings = settings
+        n = self.n = s.state_dim
+        self.rate = 1 if s.include_rate else None
+        self.deviation = 1 + int(s.include_rate) if s.estimates_deviation else None
+        points = MerweScaledSigmaPoints(n, alpha=s.alpha, beta=s.beta, kappa=s.sigma_kappa)
+        self.Wm = np.asarray(points.Wm, dtype=float)
+        self.Wc = np.asarray(points.Wc, dtype=float)
+        # (lambda + n) of the sigma points, computed as filterpy computes it.
+        self.spread = (s.alpha**2 * (n + s.sigma_kappa) - n) + n
+        self.H = s.max_hypotheses
+        self.max_variance = s.max_std_rad**2
+        self.min_information = s.uninformative_std_rad**-2
+        self._eye3 = np.eye(3)
+        self.reset(n_trials)
+
+    # ------------------------------------------------------------------ state
+    def reset(self, n_trials: int | None = None) -> None:
+        B = self.B = self.B if n_trials is None else int(n_trials)
+        n, H = self.n, self.H
+        self.x = np.zeros((B, H, n))
+        self.P = np.broadcast_to(np.eye(n) * self.max_variance, (B, H, n, n)).copy()
+        self.log_weight = np.full((B, H), -np.inf)
+        self.active = np.zeros((B, H), dtype=bool)
+        self.initialised = np.zeros(B, dtype=bool)
+        self.time_s = np.full(B, np.nan)
+        self.q = np.full((B, 3), np.nan)
+        self.rejected = np.zeros(B, dtype=np.int64)
+        self.bad_run = np.zeros(B, dtype=np.int64)
+        self.mismatch_scale = np.ones(B)
+        self.noise_scale = np.ones(B)
+        self.tip_fused = np.zeros(B, dtype=bool)
+        self.good_x, self.good_P = self.x.copy(), self.P.copy()
+        self._single = True  # every trial has at most one hypothesis (a fast path)
+
+    def deviation_prior(self, q: Array) -> Array:
+        """Prior variance of (dq_p, dq_d) at joint values q (B', 3), mm^2."""
+        s = self.settings
+        return deviation_prior(q, s.joint_error_mm, s.gain_error)
+
+    def start(self, b: Array, delta_L: Array, std: Array, q: Array | None = None) -> None:
+        """(Re-)start trials b with one hypothesis N(delta_L, std^2) (deviation: its prior)."""
+        self.active[b] = False
+        self.log_weight[b] = -np.inf
+        self.active[b, 0] = True
+        self.log_weight[b, 0] = 0.0
+        self._set(b, np.zeros(b.size, dtype=np.intp), delta_L, std, q)
+        self.initialised[b] = True
+        self.bad_run[b] = 0
+
+    def _set(self, b: Array, h: Array, delta_L: Array, std: Array, q: Array | None) -> None:
+        n, s = self.n, self.settings
+        x = np.zeros((b.size, n))
+        x[:, 0] = wrap(delta_L)
+        P = np.zeros((b.size, n, n))
+        P[:, 0, 0] = np.minimum(std**2, self.max_variance)
+        if self.rate is not None:
+            P[:, self.rate, self.rate] = s.initial_rate_std_rad_s**2
+        if self.deviation is not None:
+            k = self.deviation
+            q = self.q[b] if q is None else q
+            prior = self.deviation_prior(np.nan_to_num(q))
+            P[:, k, k], P[:, k + 1, k + 1] = prior[:, 0], prior[:, 1]
+        self.x[b, h], self.P[b, h] = x, P
+        self.good_x[b, h], self.good_P[b, h] = x, P
+
+    def velocity_offered(self) -> Array:
+        """Which trials would fuse a velocity in their next step (B,)."""
+        return velocity_offered(self.settings, self.tip_fused)
+
+    def leading(self) -> Array:
+        """Index of each trial's heaviest hypothesis."""
+        if self._single:
+            return np.argmax(self.active, axis=1)
+        return np.argmax(np.where(self.active, self.log_weight, -np.inf), axis=1)
+
+    def weights(self) -> Array:
+        """Normalised weights of the hypotheses (B, H), 0 where inactive."""
+        return np.where(self.active, np.exp(self.log_weight - self._log_total()[:, None]), 0.0)
+
+    def moments(self) -> tuple[Array, Array]:
+        """Moment-matched mean (circular) and variance of delta_L per trial (NaN if none)."""
+        if self._single:
+            lead = self.leading()
+            b = np.arange(self.B)
+            some = self.active[b, lead]
+            return (np.where(some, self.x[b, lead, 0], np.nan),
+                    np.where(some, self.P[b, lead, 0, 0], np.nan))  # fmt: skip
+        w = self.weights()
+        angle = self.x[..., 0]
+        mean = np.arctan2(np.sum(w * np.sin(angle), 1), np.sum(w * np.cos(angle), 1))
+        spread = wrap(angle - mean[:, None])
+        var = np.sum(w * (self.P[..., 0, 0] + spread * spread), 1)
+        none = ~self.active.any(axis=1)
+        return np.where(none, np.nan, wrap(mean)), np.where(none, np.nan, var)
+
+    def _log_total(self) -> Array:
+        lw = np.where(self.active, self.log_weight, -np.inf)
+        top = np.max(lw, axis=1)
+        top = np.where(np.isfinite(top), top, 0.0)
+        return top + np.log(np.maximum(np.sum(np.exp(lw - top[:, None]), 1), 1e-300))
+
+    # ------------------------------------------------------------------ one frame
+    def step(self, time_s: Array, q: Array, frame, partial: Array | None = None) -> StepResult:
+        """Predict every filter to its frame and fuse the frame.
+
+        Parameters
+        ----------
+        time_s : array (B,)
+        q : array (B, 3)
+            Joint values (the process model sees the base turn and the joints move).
+        frame : FrameGroups, ViewGroups or None
+            The measurement groups (None: nothing measured).
+        partial : array of bool (B,), optional
+            Trials whose frame lacks part of its data (reported as ``Flag.PARTIAL``).
+        """
+        s, B = self.settings, self.B
+        q = np.asarray(q, dtype=float)
+        time_s = np.asarray(time_s, dtype=float)
+        known = np.isfinite(self.time_s)
+        change = np.where(known[:, None], q - self.q, 0.0)
+        dt = np.where(known, time_s - self.time_s, 0.0)
+        turn = change[:, 0]
+        self.time_s, self.q = time_s.copy(), q.copy()
+        Q = process_variance(s.process_noise_rad2_s, s.rotation_noise_gain_rad, dt, turn)
+        flags = np.zeros(B, dtype=np.int64)
+        if partial is not None:
+            flags |= np.where(partial, _F["PARTIAL"], 0)
+        out = StepResult(
+            delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
+            nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
+            innovation=[None] * B,
+        )  # fmt: skip
+        running = self.initialised.copy()
+        if running.any():
+            moved = np.abs(change[:, 1]) + np.abs(change[:, 2])
+            self._predict(running, dt, Q, moved, flags)
+        fused_tip = np.zeros(B, dtype=bool)
+        if frame is None or not frame.present.any():
+            flags |= _F["NO_MEASUREMENT"]
+            flags |= np.where(running, _F["HELD"], _F["NOT_INITIALISED"])
+        else:
+            frame = offered_velocity(frame, s, self.tip_fused)
+            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip)
+        self.tip_fused = fused_tip
+        if self.deviation is not None:
+            k = self.deviation
+            lead = self.x[np.arange(B), self.leading(), k : k + 2]
+            far = np.any(lead * lead > 9.0 * self.deviation_prior(q), axis=1)
+            flags |= np.where(far & self.initialised, _F["MODEL_MISMATCH"], 0)
+        mean, var = self.moments()
+        valid = self.initialised & np.isfinite(mean)
+        out.delta_L_rad = np.where(valid, mean, np.nan)
+        out.std_rad = np.where(valid, np.sqrt(np.where(valid, var, 1.0)), np.nan)
+        out.rejected = self.rejected.copy()
+        return out
+
+    # ------------------------------------------------------------------ predict
+    def _sigma_points(self, x: Array, P: Array) -> tuple[Array, Array]:
+        """Wrapped sigma points (r, 2n + 1, n) and which covariances factorised."""
+        n = self.n
+        A = self.spread * P
+        if n == 1:
+            a = A[:, 0, 0]
+            ok = np.isfinite(a) & (a >= -COVARIANCE_JITTER_FLOOR)
+            U = np.sqrt(np.where(ok, np.maximum(a, COVARIANCE_JITTER_FLOOR), 1.0))[:, None, None]
+        else:
+            finite = np.isfinite(A).all(axis=(-2, -1))
+            L, ok = cholesky(A if finite.all() else np.where(finite[:, None, None], A, np.eye(n)))
+            ok &= finite
+            U = np.swapaxes(L, -1, -2)
+        sigmas = np.concatenate([x[:, None], x[:, None] + U, x[:, None] - U], axis=1)
+        sigmas[..., 0] = wrap(sigmas[..., 0])
+        return sigmas, ok
+
+    def _predict(self, running: Array, dt: Array, Q: Array, moved: Array, flags: Array) -> None:
+        """The process model of the active hypotheses of running trials.
+
+        It is linear (a random walk of delta_L, its rate integrated, the deviation an
+        Ornstein-Uhlenbeck process in the joint travel), so the unscented transform of its
+        sigma points is exactly ``F x``, ``F P F^T + Q`` (delta_L wrapped; the sigma-point
+        spread stays below pi by the std cap): that is what is computed.
+        """
+        s, n = self.settings, self.n
+        b, h = np.nonzero(self.active & running[:, None])
+        if b.size == 0:
+            return
+        x, P = self.x[b, h], self.P[b, h]
+        P[:, 0, 0] += Q[b]
+        if self.deviation is not None:
+            k = self.deviation
+            a = deviation_decay(moved[b], s.deviation_length_mm)
+            scale = np.ones((b.size, n))
+            scale[:, k : k + 2] = a[:, None]
+            x = x * scale
+            P = P * scale[:, :, None] * scale[:, None, :]
+            fresh = (1 - a * a)[:, None] * self.deviation_prior(self.q[b])
+            P[:, k, k] += fresh[:, 0]
+            P[:, k + 1, k + 1] += fresh[:, 1]
+        if self.rate is not None:
+            r, step = self.rate, dt[b]
+            qa = s.rate_process_noise_rad2_s3
+            x[:, 0] += step * x[:, r]
+            P[:, 0, :] += step[:, None] * P[:, r, :]
+            P[:, :, 0] += step[:, None] * P[:, :, r]
+            P[:, 0, 0] += qa * step**3 / 3.0
+            P[:, 0, r] += qa * step**2 / 2.0
+            P[:, r, 0] += qa * step**2 / 2.0
+            P[:, r, r] += qa * step
+        x[:, 0] = wrap(x[:, 0])
+        ok = np.isfinite(x).all(-1) & np.isfinite(P).all(axis=(-2, -1)) & (P[:, 0, 0] > 0)
+        if n > 1 and ok.all():
+            ok = cholesky(P)[1]
+        if not ok.all():
+            bad = ~ok
+            gx, gP = self._repaired(self.good_x[b[bad], h[bad]], self.good_P[b[bad], h[bad]])
+            gP[:, 0, 0] += Q[b[bad]]
+            x[bad], P[bad] = gx, gP
+            flags[b[bad]] |= _F["COVARIANCE_REPAIRED"]
+        over = P[:, 0, 0] > self.max_variance
+        if over.any():
+            f = np.sqrt(self.max_variance / P[over, 0, 0])
+            P[over, 0, :] *= f[:, None]
+            P[over, :, 0] *= f[:, None]
+        self.x[b, h], self.P[b, h] = x, P
+
+    def _repaired(self, x: Array, P: Array) -> tuple[Array, Array]:
+        """The last good state with a re-initialised (diagonal, capped) covariance."""
+        diag = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).copy()
+        diag = np.where(np.isfinite(diag) & (diag > 0), diag, self.max_variance)
+        diag[:, 0] = np.clip(diag[:, 0], COVARIANCE_JITTER_FLOOR, self.max_variance)
+        if self.rate is not None:
+            r = self.rate
+            diag[:, r] = np.maximum(diag[:, r], self.settings.initial_rate_std_rad_s**2)
+        return x.copy(), diag[..., None] * np.eye(self.n)
+
+    # ------------------------------------------------------------------ fuse
+    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:
+        s = self.settings
+        B = self.B
+        noise = frame.noise(np.arange(B))
+        check_measurement_covariance(noise, frame.present)
+        three_d = isinstance(frame, FrameGroups)
+        scale = self.noise_scale * self.mismatch_scale
+        out.radius_mm = frame.radius_mm()
+        M = None
+        if three_d:
+            rate_var = np.zeros(B) if self.rate is not None else Q
+            M = model_error_covariance(
+                frame, s.joint_error_white_mm, s.velocity_relative_error, rate_var, dt
+            )
+        # Hypotheses too wide to update (the prior carries almost nothing).
+        wide = self.active & (self.P[..., 0, 0] > s.reacquire_std_rad**2) & running[:, None]
+        all_wide = np.zeros(B, dtype=bool)
+        if wide.any():
+            narrow = self.active & ~wide
+            self.active &= ~(wide & narrow.any(axis=1)[:, None])
+            all_wide = running & self.active.any(axis=1) & ~narrow.any(axis=1)
+        updating = self.active & ~wide & running[:, None]
+        spawn = np.zeros(B, dtype=bool)
+        if updating.any():
+            update = self._update(frame, updating, M, scale)
+            lead = self.leading()
+            st = update.leading(B, lead, "status", 0)
+            touched = running & ~all_wide
+            flags |= np.where(touched, st, 0)
+            nis = update.leading(B, lead, "nis", np.nan)
+            out.nis = np.where(touched, nis, np.nan)
+            dof = update.leading(B, lead, "dof", 0)
+            out.nis_dof = np.where(touched & np.isfinite(nis), dof, 0)
+            if B == 1 and touched[0]:
+                rows = np.flatnonzero(update.h == lead[0])
+                out.innovation[0] = update.innovation[rows[0]] if rows.size else None
+            self.rejected += np.where(touched, update.leading(B, lead, "rejected", 0), 0)
+            held = (st & _F["HELD"]) != 0
+            all_rejected = touched & held & ((st & _F["OUTLIER_REJECTED"]) != 0)
+            self.bad_run = np.where(touched & ~all_rejected, 0, self.bad_run)
+            fused_tip |= touched & update.leading(B, lead, "fused_tip", False)
+            spawn = all_rejected & three_d
+            if s.estimate_noise:
+                self._adapt_noise(touched, out.nis, out.nis_dof)
+        if three_d:
+            first = ~running
+            if (first | all_wide | spawn).any():
+                jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
+                self._closed_form(frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip)
+        else:
+            # A single view leaves a mirror ambiguity: it updates a filter, never starts one.
+            flags |= np.where(~running, _F["NOT_INITIALISED"] | _F["UNINFORMATIVE"], 0)
+            flags |= np.where(all_wide, _F["UNINFORMATIVE"] | _F["HELD"], 0)
+        self._normalise()
+
+    def _closed_form(self, frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip):
+        """Start, restart or add a hypothesis from the global fit of the frame alone."""
+        s = self.settings
+        b = np.flatnonzero(first | all_wide | spawn)
+        g = frame.select(b) if b.size < self.B else frame
+        # The frame's own information: noise, white model error and the deviation's prior.
+        prior = self.deviation_prior(g.q) if s.estimates_deviation else np.zeros((b.size, 2))
+        J = g.J
+        Sigma = g.R_bar * scale[b, None, None, None] + M[b]
+        Sigma = Sigma + np.einsum("bgij,bj,bgkj->bgik", J, prior, J)
+        present = g.present
+        Sigma = np.where(present[..., None, None], Sigma, np.eye(3))
+        W = np.linalg.inv(Sigma)
+        # The deviation's quadratic term has the mean K [v_p, 0, v_d] under its prior.
+        bias = np.einsum("bgij,bj->bgi", g.K, prior @ np.array([[1.0, 0, 0], [0, 0, 1.0]]))
+        coefficients = group_coefficients(g.y, g.c + bias, W, g.q_r) * present[..., None]
+        dof = 3 * present.sum(axis=1)
+        fit = fit_frame(coefficients.sum(axis=1), dof)
+        std = fit.std_rad
+        if s.initial_std_rad is not None:
+            std = np.maximum(std, s.initial_std_rad)
+        informative = (fit.std_rad < s.uninformative_std_rad) & (
+            fit.sign_evidence >= s.min_sign_evidence
+        )
+        gates = np.array([gate_threshold(s.gate_probability, max(int(d) - 1, 1)) for d in dof])
+        consistent = fit.cost <= gates
+        misfit = np.sqrt(np.maximum(1.0, fit.cost / np.maximum(dof - 1, 1)))
+        good = informative & consistent
+        bad = informative & ~consistent
+        self.bad_run[b[bad]] += 1
+        limit = s.reacquire_after_rejections
+        mismatch = bad & bool(limit) & (self.bad_run[b] >= limit) & (
+            fit.std_rad * misfit < s.uninformative_std_rad
+        )
+        # Restarts of a trial without a usable prior, and mismatch restarts.
+        restart = (good & ~spawn[b]) | mismatch
+        if restart.any():
+            r = b[restart]
+            inflate = np.where(mismatch[restart], misfit[restart], 1.0)
+            self.mismatch_scale[r] = np.where(
+                mismatch[restart],
+                np.minimum(self.mismatch_scale[r] * inflate**2, MAX_MISMATCH_SCALE),
+                self.mismatch_scale[r],
+            )
+            self.start(r, fit.delta_L_rad[restart], std[restart] * inflate)
+            flags[r] &= ~(_F["HELD"] | _F["OUTLIER_REJECTED"] | _F["NOT_INITIALISED"])
+            flags[r] |= np.where(mismatch[restart], _F["MODEL_MISMATCH"], 0)
+            fused_tip[r] = present[restart, 0]
+        # A jump hypothesis beside the held one(s).
+        jumping = good & spawn[b] & ~mismatch
+        if jumping.any():
+            self._spawn(b[jumping], fit, std, jumping, Sigma[jumping], present[jumping], jump)
+            fused_tip[b[jumping]] |= present[jumping, 0]
+        # Frames that could not (re)start the filter.
+        idle = ~restart
+        start_idle = idle & first[b]
+        wide_idle = idle & all_wide[b]
+        why = np.where(informative, _F["OUTLIER_REJECTED"], _F["UNINFORMATIVE"])
+        self.rejected[b[start_idle & bad & ~mismatch]] += 1
+        flags[b[start_idle]] |= _F["NOT_INITIALISED"] | why[start_idle]
+        flags[b[wide_idle]] |= _F["HELD"] | why[wide_idle]
+
+    def _spawn(self, b, fit, std, chosen, Sigma, present, jump) -> None:
+        """Add the closed-form hypothesis of trials b with weight jump x its marginal; the
+        held hypotheses keep ``1 - jump`` of theirs."""
+        s = self.settings
+        logdet = np.linalg.slogdet(Sigma)[1]
+        n_groups = present.sum(axis=1)
+        # log of the frame's likelihood averaged over a uniform delta_L (Laplace's method).
+        log_marginal = (
+            n_groups * math.log1p(-s.outlier_probability)
+            - 0.5 * np.sum(present * (logdet + 3 * _LOG_2PI), axis=1)
+            - 0.5 * fit.cost[chosen]
+            + 0.5 * np.log(2 * math.pi / np.maximum(fit.information[chosen], 1e-300))
+            - _LOG_2PI
+        )
+        p = np.minimum(jump[b], 0.5)
+        self.log_weight[b] += np.log1p(-p)[:, None]
+        log_w = np.log(np.maximum(p, 1e-300)) + log_marginal
+        # The new hypothesis takes a free slot, or the weakest one if it is heavier.
+        lw = np.where(self.active[b], self.log_weight[b], -np.inf)
+        slot = np.argmin(lw, axis=1)
+        take = log_w > lw[np.arange(b.size), slot]
+        b, slot = b[take], slot[take]
+        self.active[b, slot] = True
+        self.log_weight[b, slot] = log_w[take]
+        self._set(b, slot, fit.delta_L_rad[chosen][take], std[chosen][take], None)
+
+    def _normalise(self) -> None:
+        counts = self.active.sum(axis=1)
+        self._single = bool(np.all(counts <= 1))
+        if self._single:
+            self.log_weight = np.where(self.active, 0.0, -np.inf)
+            return
+        s = self.settings
+        total = self._log_total()
+        self.log_weight = np.where(self.active, self.log_weight - total[:, None], -np.inf)
+        weak = self.active & (self.log_weight < math.log(max(s.hypothesis_floor, 1e-300)))
+        keep = np.zeros_like(weak)
+        keep[np.arange(self.B), self.leading()] = True
+        drop = weak & ~keep
+        if drop.any():
+            self.active[drop] = False
+            self._normalise()
+
+    def _adapt_noise(self, trials: Array, nis: Array, dof: Array) -> None:
+        s = self.settings
+        ok = trials & np.isfinite(nis) & (dof > 0)
+        if not ok.any():
+            return
+        d = np.maximum(dof, 1)
+        gate = np.array([gate_threshold(s.gate_probability, int(k)) for k in d])
+        ratio = np.minimum(np.minimum(nis, gate), 10.0 * d) / d
+        lam = s.noise_forgetting
+        low, high = s.noise_scale_bounds
+        new = np.clip(self.noise_scale * (lam + (1 - lam) * np.nan_to_num(ratio)), low, high)
+        self.noise_scale = np.where(ok, new, self.noise_scale)
+
+    # ------------------------------------------------------------------ update
+    def _update(self, frame, updating: Array, M: Array | None, scale: Array) -> _Update:
+        """filterpy's UKF update of every hypothesis marked ``updating`` (B, H), with a gate
+        per group.
+
+        3-D data are compared in the model frame at each hypothesis' prior mean (the
+        measured vectors turned by ``-(q_r + x_0)``, a fixed rotation of the data), where the
+        rotation-invariant noise and the model error need no turning. The innovation
+        covariance ``S = sum_s Wc dz dz^T + R``; its diagonal blocks give each group's
+        squared residual and so whether it is an outlier; the inlying groups are fused in
+        one update (gain ``Pxz S^-1``, ``P - K S K^T``), the others padded with zero rows and
+        unit noise.
+        """
+        s = self.settings
+        B = self.B
+        b, h = np.nonzero(updating)
+        r = b.size
+        G, d, n = frame.present.shape[1], frame.dim, self.n
+        m = G * d
+        x, P = self.x[b, h], self.P[b, h]
+        sigmas, ok_sigma = self._sigma_points(x, P)
+        about = x[:, 0]
+        hs = frame.predict(b, sigmas, self.rate, self.deviation, about).reshape(r, -1, m)
+        zp = self.Wm @ hs
+        D = hs - zp[:, None]
+        rho = frame.measured(b, about).reshape(r, m) - zp
+        present = frame.present if r == B else frame.present[b]
+        noise = frame.noise(b) * scale[b, None, None, None]
+        if M is not None:
+            noise += M[b]
+        DW = D * self.Wc[:, None]
+        S = np.swapaxes(DW, 1, 2) @ D
+        blocks = S.reshape(r, G, d, G, d)
+        diagonal = np.arange(G)
+        blocks[:, diagonal, :, diagonal, :] += np.moveaxis(noise, 1, 0)
+        # Per group: its block of S, its squared residual, the gate.
+        S_g = np.moveaxis(blocks[:, diagonal, :, diagonal, :], 0, 1)
+        rho_g = rho.reshape(r, G, d)
+        d2 = np.einsum("rgi,rgi->rg", rho_g, (np.linalg.inv(S_g) @ rho_g[..., None])[..., 0])
+        threshold = outlier_threshold(d, s.outlier_probability, s.outlier_scale)
+        inlier = present & (d2 <= threshold)
+        outlier = present & ~inlier
+        if not inlier.all():
+            # Fuse the inlying groups only: zero rows and columns, unit noise, for the rest.
+            keep = np.repeat(inlier, d, axis=1)
+            S = S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
+                :, :, None
+            ] * np.eye(m)
+            D = D * keep[:, None, :]
+            DW = DW * keep[:, None, :]
+            rho = rho * keep
+        dx = sigmas - x[:, None]
+        dx[..., 0] = wrap(dx[..., 0])
+        Pxz = np.swapaxes(dx, 1, 2) @ DW
+        rhs = np.concatenate([np.swapaxes(Pxz, -1, -2), rho[..., None]], -1)
+        solved, logdet_S, ok_S = _spd_solve(S, rhs)
+        nis = np.einsum("rm,rm->r", rho, solved[..., n])
+        x_post = x + (Pxz @ solved[..., n, None])[..., 0]
+        x_post[:, 0] = wrap(x_post[:, 0])
+        P_post = P - Pxz @ solved[..., :n]
+        P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
+        n_in = inlier.sum(-1)
+        p, k = s.outlier_probability, s.outlier_scale
+        log_lik = None
+        if not self._single:
+            log_lik = n_in * math.log1p(-p) - 0.5 * (nis + logdet_S + d * n_in * _LOG_2PI)
+            if p > 0 and outlier.any():
+                logdet_g = np.linalg.slogdet(S_g)[1]
+                log_lik = log_lik + np.sum(
+                    outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
+                               - 0.5 * (logdet_g + d * _LOG_2PI)), -1
+                )  # fmt: skip
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # The frame's information about delta_L: how much it shrank the variance.
+            information = 1.0 / P_post[:, 0, 0] - 1.0 / P[:, 0, 0]
+        usable = ok_sigma & ok_S & (n_in > 0)
+        post_ok = np.isfinite(P_post[:, 0, 0]) & (P_post[:, 0, 0] > 0) & np.isfinite(x_post[:, 0])
+        uninformative = usable & post_ok & ~(information > self.min_information)
+        done = usable & post_ok & ~uninformative
+        status = np.where(outlier.any(-1), _F["OUTLIER_REJECTED"], 0)
+        if not done.all():
+            status |= np.where(done | uninformative, 0, _F["HELD"])
+            status |= np.where((n_in > 0) & ~(ok_S & post_ok), _F["COVARIANCE_REPAIRED"], 0)
+            status |= np.where(uninformative, _F["UNINFORMATIVE"] | _F["HELD"], 0)
+        if done.any():
+            bd, hd = b[done], h[done]
+            self.x[bd, hd] = self.good_x[bd, hd] = x_post[done]
+            self.P[bd, hd] = self.good_P[bd, hd] = P_post[done]
+            self.mismatch_scale[bd] = 1.0 + MISMATCH_DECAY * (self.mismatch_scale[bd] - 1.0)
+        if log_lik is not None:
+            self.log_weight[b, h] += np.where(np.isfinite(log_lik), log_lik, -1e300)
+        shown = usable & ~uninformative
+        innovation = None
+        if B == 1:
+            innovation = [
+                rho_g[i][inlier[i]].ravel() if shown[i] else None for i in range(r)
+            ]
+        return _Update(
+            b=b, h=h, status=status, nis=np.where(shown, nis, np.nan),
+            dof=np.where(shown, d * n_in, 0), rejected=outlier.sum(-1), inlier=inlier,
+            fused_tip=done & inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
+        )  # fmt: skip
+
+
+def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:
+    """Solutions of ``S x = rhs`` for symmetric positive-definite S (r, m, m), rhs (r, m, k),
+    by Cholesky; log det S; which S were positive definite (others: zeros, NaN)."""
+    r = S.shape[0]
+    x = np.zeros_like(rhs)
+    logdet = np.full(r, np.nan)
+    ok = np.zeros(r, dtype=bool)
+    for i in range(r) if r <= 2 else ():
+        # A few matrices: LAPACK directly (numpy's stacked wrappers cost ten times the work).
+        c, xi, info = lapack.dposv(S[i], rhs[i], lower=1)
+        if info == 0:
+            x[i], logdet[i], ok[i] = xi, 2.0 * np.sum(np.log(np.diagonal(c))), True
+    if r > 2:
+        L, ok = cholesky(S)
+        x = np.where(ok[:, None, None], np.linalg.solve(np.where(ok[:, None, None], S,
+                                                                 np.eye(S.shape[-1])), rhs), 0.0)
+        logdet = np.where(ok, 2.0 * np.sum(np.log(np.abs(np.diagonal(L, axis1=-2, axis2=-1))),
+                                           -1), np.nan)  # fmt: skip
+    return x, logdet, ok
+
+
+__all__ = [
+    "COVARIANCE_JITTER",
+    "COVARIANCE_JITTER_FLOOR",
+    "CovarianceError",
+    "FilterBank",
+    "StepResult",
+    "check_measurement_covariance",
+    "cholesky",
+    "sigma_sqrt",
+    "spd_inverse",
+]

@@ -1,0 +1,345 @@
+"""The JSON messages of a recording turned into arrays, every problem counted once per kind.
+
+:class:`tracker.io.recording.reader.Recording` gathers the parsed messages per topic and
+hands them here: the joint blocks become one sorted joint stream, the marker messages one
+array per view, ``/truth`` the labels, ``/estimates/<method>`` the estimates. Whatever does
+not fit its schema is skipped and counted in :class:`Problems`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tracker.io.recording.schema import (
+    JOINT_COLUMNS,
+    RATE_COLUMNS,
+    TOPIC_JOINTS,
+    TOPIC_TRUTH,
+    FrameLabels,
+    MarkerQuality,
+    RecordingError,
+    estimate_topic,
+)
+from tracker.types import Estimate, Flag
+
+Array = np.ndarray
+
+PROBLEMS = {
+    "out_of_order": "message(s) out of time order ({where}): sorted by time",
+    "duplicate": "message(s) repeat an earlier time stamp ({where}): kept the first of each",
+    "nan": "message(s) hold NaN or infinite values ({where}): those points count as missing",
+    "nan_joints": "joint sample(s) hold NaN or null values ({where}): skipped",
+    "nan_truth": "message(s) hold a NaN truth ({where}): truth unknown for those frames",
+    "malformed": "message(s) do not match their schema ({where}): skipped",
+    "bad_image": "image(s) cannot be decoded ({where}): those frames have no images",
+    "unknown_channel": "message(s) on an undeclared channel ({where}): skipped",
+}
+"""One warning per kind of problem, whatever the number of topics it touches."""
+
+
+@dataclass
+class Problems:
+    """Counts of each kind of problem (:data:`PROBLEMS`) per topic."""
+
+    counts: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    def add(self, kind: str, topic: str, n: int = 1) -> None:
+        self.counts[(kind, topic)] = self.counts.get((kind, topic), 0) + n
+
+    def warnings(self) -> list[str]:
+        """One warning per kind, naming the count on each topic."""
+        by_kind: dict[str, dict[str, int]] = {}
+        for (kind, topic), n in self.counts.items():
+            by_kind.setdefault(kind, {})[topic] = n
+        out = []
+        for kind, text in PROBLEMS.items():
+            topics = by_kind.get(kind)
+            if topics:
+                where = ", ".join(f"{n} on {topic}" for topic, n in sorted(topics.items()))
+                out.append(f"{sum(topics.values())} " + text.format(where=where))
+        return out
+
+
+# ---------------------------------------------------------------------------------- joints
+def joint_stream(blocks: list[dict], problems: Problems, source: str):
+    """The joint samples of the ``/joints`` blocks, sorted, NaN and repeated samples dropped.
+
+    Returns
+    -------
+    time_ns : int array, shape (n,)
+    q : array, shape (n, 3)
+    q_dot : array, shape (n, 3), or None when the recording has no rates
+
+    Raises
+    ------
+    RecordingError
+        No valid joint sample.
+    """
+    # Gather the blocks' columns and convert each once (one numpy call per block was a
+    # third of the reading time at 1 kHz); a block that does not fit the schema is
+    # dropped whole.
+    stamps: list = []
+    q_r, q_p, q_d, r_r, r_p, r_d = ([] for _ in range(6))
+    any_rates = False
+    consistent = True
+    for payload in blocks:
+        try:
+            t = payload["time_ns"]
+            q_r += payload["q_r_rad"]
+            q_p += payload["q_p_mm"]
+            q_d += payload["q_d_mm"]
+            if payload.get("q_r_dot_rad_s") is None:
+                r_r += [None] * len(t)
+                r_p += [None] * len(t)
+                r_d += [None] * len(t)
+            else:
+                any_rates = True
+                r_r += payload["q_r_dot_rad_s"]
+                r_p += payload["q_p_dot_mm_s"]
+                r_d += payload["q_d_dot_mm_s"]
+            stamps += t
+        except (KeyError, TypeError):
+            consistent = False  # the slow path below names the block
+            break
+    # Columns of unequal length (a block that does not fit the schema) also go the slow way.
+    consistent = consistent and all(len(c) == len(stamps) for c in (q_r, q_p, q_d, r_r, r_p, r_d))
+    columns = dict(zip(JOINT_COLUMNS + RATE_COLUMNS, (q_r, q_p, q_d, r_r, r_p, r_d), strict=True))
+    if not stamps and consistent:
+        raise RecordingError(f"{source}: channel {TOPIC_JOINTS} holds no joint samples")
+    try:
+        if not consistent:
+            raise ValueError
+        t = np.array(stamps, dtype=np.int64)
+        # numpy turns null (None) into NaN: such samples are dropped below.
+        q = np.column_stack([np.array(columns[n], dtype=float) for n in JOINT_COLUMNS])
+        r = np.column_stack([np.array(columns[n], dtype=float) for n in RATE_COLUMNS])
+        if t.ndim != 1 or q.shape != (t.size, 3) or r.shape != (t.size, 3):
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        t, q, r = _joint_blocks_one_by_one(blocks, problems, source)
+        any_rates = bool(np.isfinite(r).any())
+    bad = ~np.all(np.isfinite(q), axis=1)
+    if any_rates:
+        bad |= ~np.all(np.isfinite(r), axis=1)
+    if bad.any():
+        problems.add("nan_joints", TOPIC_JOINTS, int(np.count_nonzero(bad)))
+        t, q, r = t[~bad], q[~bad], r[~bad]
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        problems.add("out_of_order", TOPIC_JOINTS + " (samples)", int(np.sum(np.diff(t) < 0)))
+    order = np.argsort(t, kind="stable")
+    t, q, r = t[order], q[order], r[order]
+    keep = np.ones(t.size, dtype=bool)
+    keep[1:] = t[1:] != t[:-1]
+    if not keep.all():
+        problems.add("duplicate", TOPIC_JOINTS + " (samples)", int(np.count_nonzero(~keep)))
+        t, q, r = t[keep], q[keep], r[keep]
+    if t.size == 0:
+        raise RecordingError(f"{source}: channel {TOPIC_JOINTS} holds no valid joint sample")
+    return t, q, r if any_rates else None
+
+
+def _joint_blocks_one_by_one(
+    blocks: list[dict], problems: Problems, source: str
+) -> tuple[Array, Array, Array]:
+    """The joint blocks converted one at a time, skipping those that do not fit the schema
+    (the slow path, taken only when the fast one fails)."""
+    stamps, qs, rates = [], [], []
+    for payload in blocks:
+        try:
+            t = np.array(payload["time_ns"], dtype=np.int64)
+            q = np.column_stack([np.array(payload[n], dtype=float) for n in JOINT_COLUMNS])
+            if payload.get(RATE_COLUMNS[0]) is None:
+                r = np.full((t.size, 3), np.nan)
+            else:
+                r = np.column_stack([np.array(payload[n], float) for n in RATE_COLUMNS])
+            if t.ndim != 1 or q.shape != (t.size, 3) or r.shape != (t.size, 3):
+                raise ValueError
+        except (KeyError, TypeError, ValueError, OverflowError):
+            problems.add("malformed", TOPIC_JOINTS)
+            continue
+        stamps.append(t)
+        qs.append(q)
+        rates.append(r)
+    if not stamps:
+        raise RecordingError(f"{source}: channel {TOPIC_JOINTS} holds no valid samples")
+    return np.concatenate(stamps), np.concatenate(qs), np.concatenate(rates)
+
+
+# --------------------------------------------------------------------------------- markers
+def point_count(stores: list[dict[int, dict]]) -> tuple[int | None, list[int]]:
+    """The most common number of rows of the marker messages (None without any), and every
+    number seen."""
+    lengths = [
+        len(p["uv"])
+        for store in stores
+        for p in store.values()
+        if isinstance(p, dict) and isinstance(p.get("uv"), list)
+    ]
+    if not lengths:
+        return None, []
+    return int(np.bincount(lengths).argmax()), sorted(set(lengths))
+
+
+def marker_arrays(
+    store: dict[int, dict], stamps: list[int], n_points: int, topic: str, problems: Problems
+) -> tuple[Array, Array, list[MarkerQuality | None]]:
+    """Every frame's points and covariances of one view, (F, P, 2) and (F, P, 2, 2), and
+    their quality; NaN rows for points not found.
+
+    Frames whose rows are all present (the common case) are converted in one go; the
+    others row by row (:func:`_markers`).
+    """
+    P, F = n_points, len(stamps)
+    uv = np.full((F, P, 2), np.nan)
+    cov = np.full((F, P, 2, 2), np.nan)
+    quality: list[MarkerQuality | None] = [None] * F
+    full, full_uv, full_cov = [], [], []
+    for i, stamp in enumerate(stamps):
+        payload = store.get(stamp)
+        if payload is None:
+            continue
+        rows, covs = payload.get("uv"), payload.get("cov")
+        if (
+            isinstance(rows, list)
+            and isinstance(covs, list)
+            and len(rows) == P
+            and len(covs) == P
+            and None not in rows
+            and None not in covs
+        ):
+            full.append(i)
+            full_uv.append(rows)
+            full_cov.append(covs)
+            quality[i] = marker_quality(payload, topic, problems)
+        else:
+            uv[i], cov[i], quality[i] = _markers(payload, P, topic, problems)
+    if full:
+        try:
+            points = np.array(full_uv, dtype=float)
+            matrices = np.array(full_cov, dtype=float)
+            if points.shape != (len(full), P, 2) or matrices.shape != (len(full), P, 2, 2):
+                raise ValueError
+        except (TypeError, ValueError):
+            for i in full:
+                uv[i], cov[i], quality[i] = _markers(store[stamps[i]], P, topic, problems)
+        else:
+            finite = np.isfinite(points).all(axis=2) & np.isfinite(matrices).all(axis=(2, 3))
+            bad_frames = int(np.count_nonzero(~finite.all(axis=1)))
+            if bad_frames:
+                problems.add("nan", topic, bad_frames)
+            points[~finite] = np.nan
+            matrices[~finite] = np.nan
+            uv[full], cov[full] = points, matrices
+    return uv, cov, quality
+
+
+def _markers(
+    payload: dict, P: int, topic: str, problems: Problems
+) -> tuple[Array, Array, MarkerQuality | None]:
+    """One marker message row by row (a null row is a point not found)."""
+    uv = np.full((P, 2), np.nan)
+    cov = np.full((P, 2, 2), np.nan)
+    try:
+        rows, covs = payload["uv"], payload["cov"]
+        if len(rows) != P or len(covs) != P:
+            raise ValueError
+        present = [k for k in range(P) if rows[k] is not None and covs[k] is not None]
+        if present:
+            points = np.array([rows[k] for k in present], dtype=float)
+            matrices = np.array([covs[k] for k in present], dtype=float)
+            if points.shape != (len(present), 2) or matrices.shape != (len(present), 2, 2):
+                raise ValueError
+            finite = np.isfinite(points).all(axis=1) & np.isfinite(matrices).all(axis=(1, 2))
+            if not finite.all():
+                problems.add("nan", topic)
+            index = np.array(present)[finite]
+            uv[index], cov[index] = points[finite], matrices[finite]
+        quality = marker_quality(payload, topic, problems)
+    except (KeyError, TypeError, ValueError):
+        problems.add("malformed", topic)
+        return np.full((P, 2), np.nan), np.full((P, 2, 2), np.nan), None
+    return uv, cov, quality
+
+
+def marker_quality(payload: dict, topic: str, problems: Problems) -> MarkerQuality | None:
+    q = payload.get("quality")
+    if not isinstance(q, dict):
+        return None
+    try:
+        sigma = q.get("noise_sigma_gray")
+        return MarkerQuality(
+            int(q.get("flags", 0)),
+            tuple(str(x) for x in q.get("flag_names", [])),
+            None if sigma is None else float(sigma),
+        )
+    except (TypeError, ValueError):
+        problems.add("malformed", topic)
+        return None
+
+
+# ------------------------------------------------------------------------- truth, estimates
+def labels(payload: dict | None, problems: Problems) -> tuple[float | None, FrameLabels]:
+    """The true delta_L (None where unknown) and the labels of a ``/truth`` message."""
+    if payload is None:
+        return None, FrameLabels()
+
+    def number(key):
+        value = payload.get(key)
+        if value is None:
+            return None
+        value = float(value)
+        return value if math.isfinite(value) else None
+
+    def index(key):
+        value = payload.get(key)
+        return None if value is None else int(value)
+
+    try:
+        delta_L = payload.get("delta_L_rad")
+        if delta_L is not None and not math.isfinite(float(delta_L)):
+            problems.add("nan_truth", TOPIC_TRUTH)
+        frame_labels = FrameLabels(
+            plane=index("plane"),
+            configuration=index("configuration"),
+            deflection_mm=number("deflection_mm"),
+            noise_level=number("noise_level"),
+            delta_1_true_rad=number("delta_1_rad"),
+        )
+        return number("delta_L_rad"), frame_labels
+    except (TypeError, ValueError, AttributeError):
+        problems.add("malformed", TOPIC_TRUTH)
+        return None, FrameLabels()
+
+
+def estimates(
+    store: dict[int, dict], name: str, start_ns: int, problems: Problems
+) -> list[tuple[float, Estimate]]:
+    """``(time_s, estimate)`` of the ``/estimates/<name>`` messages in time order."""
+    rows = []
+    for stamp in sorted(store):
+        p = store[stamp]
+        time_s = (stamp - start_ns) / 1e9
+        try:
+            nis = p.get("nis")
+            estimate = Estimate(
+                time_s=time_s,
+                delta_L_rad=_nan_if_none(p.get("delta_L_rad")),
+                std_rad=_nan_if_none(p.get("std_rad")),
+                q_r_rad=float(p["q_r_rad"]),
+                flags=Flag(int(p.get("flags", 0))),
+                informative_radius_mm=float(p.get("informative_radius_mm", 0.0)),
+                nis=None if nis is None else float(nis),
+                nis_dof=int(p.get("nis_dof", 0)),
+            )
+        except (KeyError, TypeError, ValueError):
+            problems.add("malformed", estimate_topic(name))
+            continue
+        rows.append((time_s, estimate))
+    return rows
+
+
+def _nan_if_none(value) -> float:
+    return float("nan") if value is None else float(value)

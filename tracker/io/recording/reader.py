@@ -1,0 +1,528 @@
+"""Reading a recording back (docs/recording.md): :func:`open_recording`.
+
+The reader walks the file record by record (:class:`tracker.io.recording.scan.McapScan`)
+and validates as it goes. A file that is not MCAP, is not a cathtrack recording, has an
+unknown format version or lacks the joint values raises :class:`RecordingError` with one
+clear message naming the file. Everything else that can be read is kept: a damaged or
+truncated file gives every intact message before the damage and, where the walk finds its
+way, after it (the report names each loss by kind, bytes and seconds); out-of-order messages
+are sorted, duplicated time stamps keep the first message, NaN values mark the points (or
+joint samples) as missing; each of these is counted once in :class:`ReadReport`. Frames come
+back as :class:`tracker.types.Frame` -- the type the live loop consumes -- with their joint
+values interpolated to the frame time (:class:`tracker.io.joints.JointHistory`, as live),
+together with the experiment's labels.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import tomllib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata
+
+from models.catheter import Catheter
+from models.imaging import Rig
+from models.model_file import ModelFileError, catheter_from_dict
+from models.pose import Pose
+from models.rig_file import RigFileError, rig_from_toml, view_names
+from tracker.io.joints import JointHistory
+from tracker.io.recording import decode
+from tracker.io.recording.images import decode_image
+from tracker.io.recording.scan import Damage, Located, McapScan
+from tracker.io.recording.schema import (
+    FORMAT,
+    FORMAT_VERSION,
+    TOPIC_JOINTS,
+    TOPIC_TRUTH,
+    VIEWS,
+    FrameLabels,
+    MarkerQuality,
+    RecordingError,
+    background_topic,
+    decode_json,
+    image_topic,
+    markers_topic,
+)
+from tracker.types import Estimate, Frame
+
+Array = np.ndarray
+
+MAX_JOINT_GAP_S = 0.1
+"""Frames farther than this from the nearest joint samples get no joint values (skipped)."""
+
+
+@dataclass(frozen=True)
+class RecordedFrame:
+    """A frame read from a recording, its labels, and each view's segmentation quality."""
+
+    frame: Frame
+    labels: FrameLabels
+    quality: tuple[MarkerQuality | None, MarkerQuality | None] = (None, None)
+
+
+@dataclass(frozen=True)
+class RecordedEstimate:
+    """An estimate read from ``/estimates/<method>``."""
+
+    time_s: float
+    estimate: Estimate
+
+
+@dataclass(frozen=True)
+class RecordingMetadata:
+    format_version: int
+    start_time_ns: int
+    writer: str
+    model_toml: str
+    rig_toml: str
+    settings: dict
+
+
+@dataclass
+class ReadReport:
+    """What the reader found: message counts, the damaged parts of the file, and every
+    problem, counted once per kind."""
+
+    path: str
+    messages: dict[str, int] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    damage: list[Damage] = field(default_factory=list)
+    frames: int = 0
+    joint_samples: int = 0
+    last_time_s: float | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.warnings
+
+    @property
+    def truncated(self) -> bool:
+        return any(d.kind == "truncated" for d in self.damage)
+
+    @property
+    def lost_seconds(self) -> float:
+        """Log time spanned by the lost chunks, s (where their headers say)."""
+        spans = [d.end_ns - d.start_ns for d in self.damage if d.lost and d.start_ns is not None]
+        return max(sum(spans), 0) / 1e9
+
+    @property
+    def lost_bytes(self) -> int:
+        return sum(d.end - d.offset for d in self.damage if d.lost)
+
+    def summary(self) -> str:
+        """A few lines for the console and the report."""
+        lines = [
+            f"{self.path}: {self.frames} frames, {self.joint_samples} joint samples, "
+            + ", ".join(f"{topic} {n}" for topic, n in sorted(self.messages.items()))
+        ]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+@dataclass
+class _ImageRef:
+    """Where an image message is: in a chunk (read again when the image is decoded), or,
+    outside chunks, its data."""
+
+    chunk_offset: int
+    index: int
+    data: bytes | None = None
+
+
+class Recording:
+    """A recording read from an MCAP file (see :func:`open_recording`)."""
+
+    def __init__(self, path: str | Path, max_joint_gap_s: float = MAX_JOINT_GAP_S) -> None:
+        self.path = Path(path)
+        self.max_joint_gap_s = float(max_joint_gap_s)
+        self.report = ReadReport(str(self.path))
+        self._problems = decode.Problems()
+        self._metadata_raw: dict[str, dict[str, str]] = {}
+        self._channels: dict[int, str] = {}
+        self._last_time: dict[str, int] = {}
+        self._max_time: int | None = None
+        self._joint_blocks: list[dict] = []
+        self._per_frame: dict[str, dict[int, Any]] = {}
+        self._estimates_raw: dict[str, dict[int, dict]] = {}
+        self._chunk_cache: tuple[int, list] | None = None
+        self._file: BinaryIO | None = None
+        # The scan allocates many small objects and frees none: the cyclic garbage collector
+        # would only rescan them (a third of the reading time), so it waits until the end.
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            damage = self._scan()
+            self.metadata = self._check_metadata()
+            self.report.warnings += [self._damage_warning(d, t) for d, t in damage]
+            self._assemble()
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            if collecting:
+                gc.enable()
+
+    # ---------------------------------------------------------------- scanning
+    def _scan(self) -> list[tuple[Damage, int | None]]:
+        """Gather the messages; the damage found, each with the latest log time before it."""
+        try:
+            self._file = open(self.path, "rb")  # noqa: SIM115 - kept open for lazy images
+        except OSError as exc:
+            raise RecordingError(f"cannot read recording {self.path}: {exc.strerror}") from None
+        try:
+            self._mcap = McapScan(self._file)
+        except McapError:
+            raise RecordingError(
+                f"{self.path} is not an MCAP file (it does not start with the MCAP magic bytes)"
+            ) from None
+        damage = []
+        for item in self._mcap.records():
+            if isinstance(item, Damage):
+                self.report.damage.append(item)
+                damage.append((item, self._max_time))
+                continue
+            record = item.record
+            if isinstance(record, Message):
+                self._message(record.channel_id, record.log_time, record.data, item)
+            elif isinstance(record, Channel):
+                self._channels[record.id] = record.topic
+                self.report.messages.setdefault(record.topic, 0)
+            elif isinstance(record, Metadata):
+                self._metadata_raw[record.name] = dict(record.metadata)
+        return damage
+
+    def _message(self, channel_id: int, log_time: int, data: bytes, where: Located) -> None:
+        topic = self._channels.get(channel_id)
+        if topic is None:
+            self._problems.add("unknown_channel", f"channel {channel_id}")
+            return
+        messages = self.report.messages
+        messages[topic] = messages.get(topic, 0) + 1
+        last = self._last_time.get(topic)
+        if last is None or log_time >= last:
+            self._last_time[topic] = log_time
+        else:
+            self._problems.add("out_of_order", topic)
+        if self._max_time is None or log_time > self._max_time:
+            self._max_time = log_time
+        if topic.startswith("/camera/"):
+            inline = where.chunk_offset < 0
+            self._store(
+                topic,
+                log_time,
+                _ImageRef(where.chunk_offset, where.index, data if inline else None),
+            )
+            return
+        payload = self._json(topic, data)
+        if payload is None:
+            return
+        if topic == TOPIC_JOINTS:
+            self._joint_blocks.append(payload)
+        elif topic.startswith("/estimates/"):
+            store = self._estimates_raw.setdefault(topic[len("/estimates/") :], {})
+            if log_time in store:
+                self._problems.add("duplicate", topic)
+            else:
+                store[log_time] = payload
+        elif topic == TOPIC_TRUTH or topic.startswith("/markers/"):
+            self._store(topic, log_time, payload)
+
+    def _store(self, topic: str, log_time: int, value) -> None:
+        store = self._per_frame.setdefault(topic, {})
+        if log_time in store:
+            self._problems.add("duplicate", topic)
+        else:
+            store[log_time] = value
+
+    def _json(self, topic: str, data: bytes) -> dict | None:
+        try:
+            payload = decode_json(data)
+        except (ValueError, UnicodeDecodeError):
+            payload = None
+        if not isinstance(payload, dict):
+            self._problems.add("malformed", topic)
+            return None
+        return payload
+
+    def _seconds(self, time_ns: int) -> float:
+        return (time_ns - self._start_ns()) / 1e9
+
+    def _damage_warning(self, damage: Damage, before_ns: int | None) -> str:
+        """One line naming the loss: kind, bytes, and the session time it spanned."""
+        d = damage
+        where = f"bytes {d.offset} to {d.end}"
+        span = (
+            f"data from t = {self._seconds(d.start_ns):.3f} to {self._seconds(d.end_ns):.3f} s"
+            if d.start_ns is not None and d.end_ns is not None
+            else "the data there"
+        )
+        read_up_to = "" if before_ns is None else f" up to t = {self._seconds(before_ns):.3f} s"
+        if d.kind == "truncated":
+            lost = (
+                "" if d.start_ns is None else f"; the incomplete chunk held {span}, which is lost"
+            )
+            n = d.end - d.offset
+            incomplete = f"the last {n} bytes are lost" if n else "no record is incomplete"
+            return (
+                f"the file is truncated ({d.detail}; no MCAP footer): {incomplete}, read"
+                f" everything{read_up_to}{lost}"
+            )
+        if d.kind in ("bad_crc", "bad_compression"):
+            return f"a corrupt chunk ({d.detail}) was skipped ({where}): {span} lost"
+        if d.kind == "bad_length" and not d.lost:
+            return (
+                f"a chunk at byte {d.offset} has a damaged record length ({d.detail}): read by"
+                " its content, nothing lost"
+            )
+        after = "" if before_ns is None else f" after t = {self._seconds(before_ns):.3f} s"
+        if d.kind == "bad_length":
+            return (
+                f"a record at byte {d.offset} has a damaged length ({d.detail}): skipped"
+                f" ({where}), {span}{after} lost"
+            )
+        return f"{where} hold no readable record ({d.detail}): skipped, {span}{after} lost"
+
+    def _start_ns(self) -> int:
+        try:
+            return int(self._metadata_raw.get("cathtrack", {}).get("start_time_ns", 0))
+        except ValueError:
+            return 0
+
+    # ---------------------------------------------------------------- checks
+    def _check_metadata(self) -> RecordingMetadata:
+        info = self._metadata_raw.get("cathtrack")
+        if info is None or info.get("format") != FORMAT:
+            raise RecordingError(
+                f"{self.path} is an MCAP file but not a cathtrack recording (no 'cathtrack'"
+                f' metadata record naming the format "{FORMAT}")'
+            )
+        version = info.get("format_version", "")
+        if version != str(FORMAT_VERSION):
+            raise RecordingError(
+                f"{self.path}: unknown recording format version {version!r}; this cathtrack"
+                f" reads version {FORMAT_VERSION}"
+            )
+        for name in ("model", "rig"):
+            if "toml" not in self._metadata_raw.get(name, {}):
+                raise RecordingError(f"{self.path}: missing the '{name}' metadata record")
+        try:
+            settings = json.loads(self._metadata_raw.get("settings", {}).get("json", "{}"))
+        except ValueError:
+            settings = {}
+            self.report.warnings.append("the settings metadata is not valid JSON: ignored")
+        return RecordingMetadata(
+            format_version=int(version),
+            start_time_ns=self._start_ns(),
+            writer=info.get("writer", ""),
+            model_toml=self._metadata_raw["model"]["toml"],
+            rig_toml=self._metadata_raw["rig"]["toml"],
+            settings=settings if isinstance(settings, dict) else {},
+        )
+
+    # ---------------------------------------------------------------- assembly
+    def _assemble(self) -> None:
+        start_ns = self.metadata.start_time_ns
+        source = str(self.path)
+        if not self.report.messages.get(TOPIC_JOINTS):
+            raise RecordingError(
+                f"{self.path}: missing channel {TOPIC_JOINTS}: a recording needs the joint values"
+            )
+        t_ns, q, q_dot = decode.joint_stream(self._joint_blocks, self._problems, source)
+        self.joints = JointHistory((t_ns - start_ns) / 1e9, q, q_dot)
+        self.views = self._view_names()
+        views_present = []
+        for view in self.views:
+            has_markers = bool(self._per_frame.get(markers_topic(view)))
+            has_images = bool(self._per_frame.get(image_topic(view)))
+            if has_markers or has_images:
+                views_present.append(view)
+            if not self.report.messages.get(markers_topic(view)):
+                self.report.warnings.append(
+                    f"missing channel {markers_topic(view)}: frames have no {view} markers"
+                    + (" (the images can be segmented)" if has_images else "")
+                )
+        if not views_present:
+            raise RecordingError(
+                f"{self.path}: no marker or image channel of any view: nothing to track"
+            )
+        if not self.report.messages.get(TOPIC_TRUTH):
+            self.report.warnings.append(f"missing channel {TOPIC_TRUTH}: no ground truth")
+        stamps = set()
+        for view in self.views:
+            stamps.update(self._per_frame.get(markers_topic(view), {}))
+            stamps.update(self._per_frame.get(image_topic(view), {}))
+        stamps = np.array(sorted(stamps), dtype=np.int64)
+        times = (stamps - start_ns) / 1e9
+        q, q_dot, gap_s = self.joints.interpolate(times)
+        ok = gap_s <= self.max_joint_gap_s
+        if np.any(~ok):
+            self.report.warnings.append(
+                f"{int(np.count_nonzero(~ok))} frame(s) have no joint values within"
+                f" {self.max_joint_gap_s:g} s: skipped"
+            )
+        self._stamps, self._times = stamps[ok], times[ok]
+        self._q, self._q_dot = q[ok], q_dot[ok]
+        self.backgrounds = tuple(self._background(view) for view in self.views)
+        self.estimates = {
+            name: [
+                RecordedEstimate(t, e)
+                for t, e in decode.estimates(s, name, start_ns, self._problems)
+            ]
+            for name, s in self._estimates_raw.items()
+        }
+        n_points = self._point_count()
+        stamps = [int(x) for x in self._stamps]
+        self._uv, self._cov, self._quality = {}, {}, {}
+        for view in self.views:
+            topic = markers_topic(view)
+            store = self._per_frame.get(topic, {})
+            self._uv[view], self._cov[view], self._quality[view] = decode.marker_arrays(
+                store, stamps, n_points, topic, self._problems
+            )
+        truth = self._per_frame.get(TOPIC_TRUTH, {})
+        self._truth = [decode.labels(truth.get(stamp), self._problems) for stamp in stamps]
+        # The parsed JSON is now in arrays: drop it (millions of small objects that every
+        # later garbage collection would walk). Image references stay, for lazy decoding.
+        self._joint_blocks = []
+        for topic in (TOPIC_TRUTH, *(markers_topic(view) for view in self.views)):
+            self._per_frame.pop(topic, None)
+        self._estimates_raw = {}
+        self.report.warnings += self._problems.warnings()
+        self.report.frames = len(self._stamps)
+        self.report.joint_samples = int(self.joints.time_s.size)
+        if self._max_time is not None:
+            self.report.last_time_s = (self._max_time - start_ns) / 1e9
+
+    def _view_names(self) -> tuple[str, ...]:
+        """The recorded rig's view names (the bi-plane names for a rig that names none)."""
+        try:
+            return view_names(tomllib.loads(self.metadata.rig_toml), "recorded rig")
+        except (tomllib.TOMLDecodeError, RigFileError, AttributeError, TypeError):
+            return VIEWS
+
+    def _point_count(self) -> int:
+        """Rows per view: the most common in the marker messages, else the catheter's."""
+        stores = [self._per_frame.get(markers_topic(view), {}) for view in self.views]
+        n_points, seen = decode.point_count(stores)
+        if len(seen) > 1:
+            self.report.warnings.append(
+                f"marker messages have different numbers of rows {seen}: using the most common"
+            )
+        if n_points is not None:
+            return n_points
+        try:
+            return 1 + len(self.catheter().marker_arclengths_mm)
+        except RecordingError:
+            return 1
+
+    # ---------------------------------------------------------------- images
+    def _image_data(self, ref: _ImageRef) -> bytes:
+        if ref.data is not None:
+            return ref.data
+        if self._chunk_cache is None or self._chunk_cache[0] != ref.chunk_offset:
+            self._chunk_cache = (ref.chunk_offset, self._mcap.chunk_records(ref.chunk_offset))
+        return self._chunk_cache[1][ref.index].data
+
+    def _image(self, topic: str, stamp: int) -> Array | None:
+        ref = self._per_frame.get(topic, {}).get(stamp)
+        if ref is None:
+            return None
+        try:
+            return decode_image(self._image_data(ref))
+        except (ValueError, OSError, McapError):
+            self._problems.add("bad_image", topic)
+            return None
+
+    def _background(self, view: str) -> Array | None:
+        refs = self._per_frame.get(background_topic(view), {})
+        if not refs:
+            return None
+        return self._image(background_topic(view), min(refs))
+
+    @property
+    def has_images(self) -> bool:
+        return all(bool(self._per_frame.get(image_topic(v))) for v in self.views)
+
+    # ---------------------------------------------------------------- public
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def frames(self, images: bool | Callable[[int], bool] = True) -> Iterator[RecordedFrame]:
+        """The frames in time order.
+
+        Parameters
+        ----------
+        images : bool or callable
+            Decode the images (one frame at a time); a callable of the frame index decodes
+            them only for the frames it accepts.
+        """
+        has_images = self.has_images
+        for i in range(len(self._stamps)):
+            stamp = int(self._stamps[i])
+            delta_L, labels = self._truth[i]
+            decoded = None
+            if has_images and (images(i) if callable(images) else images):
+                decoded = tuple(self._image(image_topic(v), stamp) for v in self.views)
+                decoded = None if any(image is None for image in decoded) else decoded
+            frame = Frame(
+                time_s=float(self._times[i]),
+                q=self._q[i].copy(),
+                q_dot=self._q_dot[i].copy(),
+                uv=tuple(self._uv[v][i].copy() for v in self.views),
+                cov=tuple(self._cov[v][i].copy() for v in self.views),
+                images=decoded,
+                delta_L_true_rad=delta_L,
+            )
+            quality = tuple(self._quality[v][i] for v in self.views)
+            yield RecordedFrame(frame, labels, quality)
+
+    def frame_times_s(self) -> Array:
+        return self._times.copy()
+
+    def catheter(self) -> Catheter:
+        """The catheter model of the ``model`` metadata record."""
+        try:
+            return catheter_from_dict(tomllib.loads(self.metadata.model_toml), "recorded model")
+        except (tomllib.TOMLDecodeError, ModelFileError) as exc:
+            raise RecordingError(f"{self.path}: {exc}") from None
+
+    def rig(self) -> tuple[Rig, Pose]:
+        """The rig and the registered base pose of the ``rig`` metadata record."""
+        source = f"{self.path} rig"
+        try:
+            rig, base = rig_from_toml(self.metadata.rig_toml, source)
+        except RigFileError as exc:
+            raise RecordingError(str(exc)) from None
+        if base is None:
+            raise RecordingError(f"{source}: missing table [base] (registered base pose)")
+        return rig, base
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_recording(path: str | Path, max_joint_gap_s: float = MAX_JOINT_GAP_S) -> Recording:
+    """Read and validate a recording (images are decoded later, frame by frame).
+
+    Raises
+    ------
+    RecordingError
+        Not an MCAP file, not a cathtrack recording, an unknown format version, no joint
+        values, or no marker or image channel. Problems that leave something readable are
+        warnings in ``recording.report`` instead.
+    """
+    return Recording(path, max_joint_gap_s)

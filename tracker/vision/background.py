@@ -1,0 +1,301 @@
+"""One camera's segmentation over time: a background that follows the scene, and a region of
+interest that follows the catheter (docs/vision.md section 4).
+
+:class:`BackgroundModel` is the empty scene of one camera, in the photometry of the image it
+started from. Each frame updates a stripe of its rows (a running average of the frame mapped
+back through the frame's tone curve, :mod:`tracker.vision.photometry`), leaving out the pixels
+near the segmented catheter and those that differ from the model by more than
+``background_gate_sigma`` noise standard deviations (the catheter even when it was not
+segmented, a hand, anything new). Slow changes of the scene (a lamp drifting across it, a
+warming sensor) are followed; the catheter, present from the first frame, is not burnt in.
+``freeze_background`` keeps the image as given.
+
+When a frame no longer registers with the model (the camera moved: the photometric fit finds
+a shift of the whole image above ``camera_moved_px``), the model is re-registered by that
+shift if it is at most ``max_shift_px`` and the frame then fits it; the frames are flagged
+CAMERA_MOVED from then on (the rig's calibration of that camera may no longer hold).
+Otherwise the frame is flagged BACKGROUND_LOST and not segmented: take a new background.
+
+:class:`CameraSegmenter` wires one camera: the per-view :class:`Segmenter`, its background
+model, the registered base in its image, and the region searched (around the points the
+caller predicts, e.g. the last estimate reprojected, or else around the catheter of the last
+frame; the whole image at the start and whenever the catheter is not found there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from tracker.vision.photometry import Photometry, background_samples, register_shift
+from tracker.vision.segmentation import (
+    SegmentationFlag,
+    Segmenter,
+    ViewSegmentation,
+    detection_backgrounds,
+    smooth_for_detection,
+)
+from tracker.vision.settings import SegmentationSettings, check_image
+
+Array = np.ndarray
+
+_REGISTRATION_STEPS = 4
+
+
+class BackgroundModel:
+    """The empty scene of one camera, updated from the frames.
+
+    Parameters
+    ----------
+    background : array (h, w), uint8
+        The image of the empty scene (or of the scene with the catheter parked out of view).
+    settings : SegmentationSettings
+        ``freeze_background``, ``background_rate``, ``background_stripes``,
+        ``background_gate_sigma``, ``catheter_clearance_px``.
+
+    Attributes
+    ----------
+    image : array (h, w), uint8
+        The current model, as the segmentation uses it...
+    prepared : pair of arrays, uint8
+        ...and as its detection step does (:func:`detection_backgrounds`: smoothed, updated
+        with every stripe, and at half resolution, updated after every cycle of stripes)...
+    samples : BackgroundSamples
+        ...and as the photometric fit does (also updated after every cycle of stripes).
+    shift_px : array (2,)
+        Total shift the model has been re-registered by since the start, px.
+    """
+
+    def __init__(self, background: Array, settings: SegmentationSettings) -> None:
+        self.settings = settings
+        self.image = np.array(background, np.uint8, copy=True)
+        self._level = self.image.astype(np.float32)
+        self._refresh()
+        self._stripe = 0
+        self.shift_px = np.zeros(2)
+
+    def shifted(self, shift_px: Array) -> Array:
+        """The model's gray levels (float32) with its content moved by ``shift_px`` (x, y),
+        px, edges replicated; the model itself is unchanged."""
+        dx, dy = (float(v) for v in shift_px)
+        move = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], np.float32)
+        height, width = self.image.shape
+        level = cv2.warpAffine(self._level, move, (width, height), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REPLICATE)
+        return level
+
+    def shift(self, shift_px: Array) -> None:
+        """Move the model's content by ``shift_px`` (x, y), px (re-registration)."""
+        self._level = self.shifted(shift_px)
+        self.image = _to_u8(self._level)
+        self._refresh()
+        self.shift_px = self.shift_px + np.asarray(shift_px, float)
+
+    def update(
+        self, image: Array, photometry: Photometry, catheter_px: list[tuple[Array, float]]
+    ) -> None:
+        """Average the next stripe of rows of a frame into the model.
+
+        Parameters
+        ----------
+        image : array (h, w), uint8
+        photometry : Photometry
+            The frame's tone curve relative to this model (the frame is mapped back by its
+            inverse) and noise (for the gate).
+        catheter_px : list of (points (n, 2), half width px)
+            Polylines along the catheter (segmented or predicted) whose neighbourhood, half
+            width plus ``catheter_clearance_px``, is left out.
+        """
+        s = self.settings
+        if s.freeze_background or not photometry.fitted:
+            return
+        height = self.image.shape[0]
+        rows_per = -(-height // s.background_stripes)
+        y0 = self._stripe * rows_per
+        y1 = min(y0 + rows_per, height)
+        self._stripe = (self._stripe + 1) % s.background_stripes
+        if y1 <= y0:
+            return
+        # The frame in the model's photometry, and the pixels within the gate of the model.
+        in_photometry = cv2.LUT(image[y0:y1], photometry.inverse_lut())
+        level = self._level[y0:y1]
+        gate = s.background_gate_sigma * max(photometry.sigma_gray, 1.0) / max(photometry.gain, 0.1)
+        mask = cv2.compare(cv2.absdiff(in_photometry, level), gate, cv2.CMP_LE)
+        one = 1 << _SHIFT
+        for points, half_width_px in catheter_px:
+            points = np.asarray(points, float).reshape(-1, 2)
+            points = points[np.all(np.isfinite(points), axis=1)]
+            thickness = int(np.ceil(2.0 * (half_width_px + s.catheter_clearance_px)))
+            if points.size == 0 or not (
+                points[:, 1].min() - thickness < y1 and points[:, 1].max() + thickness > y0
+            ):
+                continue
+            fixed = np.rint((points - (0.0, y0)) * one).astype(np.int32)
+            cv2.polylines(mask, [fixed], False, 0, thickness, cv2.LINE_8, _SHIFT)
+            for p in fixed[[0, -1]]:
+                cv2.circle(mask, (int(p[0]), int(p[1])), (thickness * one) // 2, 0, -1,
+                           cv2.LINE_8, _SHIFT)
+        cv2.accumulateWeighted(in_photometry, level, s.background_rate, mask)
+        self.image[y0:y1] = _to_u8(level)
+        # The smoothing reaches one row beyond the stripe on each side.
+        a, b = max(y0 - 1, 0), min(y1 + 1, height)
+        self.prepared[0][y0:y1] = smooth_for_detection(self.image[a:b])[y0 - a : y1 - a]
+        if self._stripe == 0:
+            self._refresh()
+
+    def _refresh(self) -> None:
+        """Recompute what the detection and the photometric fit keep of the model."""
+        self.prepared = detection_backgrounds(self.image)
+        self.samples = background_samples(self.image, self.settings.noise_stride_px)
+
+
+_SHIFT = 2  # fractional bits of the polyline coordinates given to OpenCV
+
+
+def _to_u8(level: Array) -> Array:
+    """Gray levels (float32, >= 0) rounded to 8 bits, saturated."""
+    return cv2.convertScaleAbs(level)
+
+
+class CameraSegmenter:
+    """Segments the frames of one camera.
+
+    Parameters
+    ----------
+    segmenter : Segmenter
+        The per-view segmentation of the catheter (its settings apply here too).
+    background : array (h, w), uint8
+        The camera's image of the empty scene.
+    base_px : array (2,), optional
+        The registered base projected into this camera, px.
+    name : str
+        The camera's name in error messages.
+    """
+
+    def __init__(
+        self,
+        segmenter: Segmenter,
+        background: Array,
+        base_px: Array | None = None,
+        name: str = "camera",
+    ) -> None:
+        self.segmenter = segmenter
+        self.settings = segmenter.settings
+        self.name = name
+        background = check_image(background, f"{name} background image")
+        self.background = BackgroundModel(background, self.settings)
+        self.base_px = None if base_px is None else np.asarray(base_px, float).reshape(2)
+        self.last: ViewSegmentation | None = None
+        self.noise_gray: float | None = None  # running estimate of the sensor noise
+
+    @property
+    def shift_px(self) -> Array:
+        """How far the camera's image has moved since its background was captured, px."""
+        return self.background.shift_px
+
+    def reset(self) -> None:
+        """Forget the last frame (the next one is searched whole); the background stays."""
+        self.last = None
+
+    def segment(self, image: Array, predicted_px: Array | None = None) -> ViewSegmentation:
+        """Segment one frame, then update the background and the region of interest.
+
+        Parameters
+        ----------
+        image : array (h, w), uint8
+        predicted_px : array (n, 2), optional
+            Where the catheter's points are expected in this image (e.g. the last estimate's
+            points reprojected), px: the search starts in the region around them and the
+            base. Without them, the region around the last frame's catheter.
+        """
+        image = check_image(image, f"{self.name} image", self.background.image.shape)
+        s = self.settings
+        segmenter = self.segmenter
+        photometry = segmenter.photometry(
+            image, self.background.image, self.background.samples
+        )
+        flags = segmenter.photometry_flags(photometry)
+        extra = SegmentationFlag.NONE
+        if flags & SegmentationFlag.CAMERA_MOVED and not flags & SegmentationFlag.EXPOSURE:
+            photometry, extra = self._reregister(image, photometry)
+        if np.hypot(*self.background.shift_px) > s.camera_moved_px:
+            extra |= SegmentationFlag.CAMERA_MOVED
+        if extra & SegmentationFlag.BACKGROUND_LOST:
+            seg = segmenter.empty_result(flags | extra, photometry)
+        else:
+            seg = segmenter.segment(
+                image, self.background.image, self.base_px, photometry=photometry,
+                search_px=self._search_points(predicted_px),
+                prepared=self.background.prepared,
+            )
+            if extra:
+                seg = dataclasses.replace(seg, flags=seg.flags | extra)
+        if photometry.fitted and not seg.flags & (
+            SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST
+        ):
+            self.noise_gray = (
+                photometry.sigma_gray if self.noise_gray is None
+                else 0.9 * self.noise_gray + 0.1 * photometry.sigma_gray
+            )
+            self.background.update(image, photometry, self._catheter_lines(seg))
+        if seg.centreline_px.shape[0] >= 2:
+            self.last = seg
+        elif seg.flags & SegmentationFlag.NO_CATHETER:
+            self.last = None
+        return seg
+
+    # ------------------------------------------------------------------ steps
+    def _search_points(self, predicted_px: Array | None) -> Array | None:
+        if self.settings.roi_pad_px <= 0:
+            return None
+        if predicted_px is not None:
+            points = np.asarray(predicted_px, float).reshape(-1, 2)
+        elif self.last is not None:
+            points = np.vstack([self.last.centreline_px, self.last.tip_px[None]])
+        else:
+            return None
+        if self.base_px is not None:
+            points = np.vstack([points, self.base_px[None]])
+        return points
+
+    def _catheter_lines(self, seg: ViewSegmentation) -> list[tuple[Array, float]]:
+        """The catheter's centreline of this frame, or of the last frame if none was found."""
+        source = seg if seg.centreline_px.shape[0] >= 2 else self.last
+        if source is None:
+            return []
+        radius = source.tube_radius_px if np.isfinite(source.tube_radius_px) else 4.0
+        # The proximal tube is wider than the distal radius measured at the tip: 1.2 / 0.89.
+        return [(source.centreline_px, 1.5 * radius)]
+
+    def _reregister(self, image: Array, photometry: Photometry):
+        """Shift the model onto a frame that moved; (photometry, flags) of the outcome."""
+        s = self.settings
+        segmenter = self.segmenter
+        shift = np.asarray(photometry.shift_px, float)
+        if np.hypot(*shift) > 0.5 * s.max_shift_px:
+            # Beyond the first-order estimate's reach: phase correlation first.
+            coarse = register_shift(image, self.background.image, photometry, s.max_shift_px)
+            if coarse is None:
+                return photometry, SegmentationFlag.BACKGROUND_LOST
+            shift = coarse
+        total = np.zeros(2)
+        for _ in range(_REGISTRATION_STEPS):
+            total = total + shift
+            if np.hypot(*total) > s.max_shift_px:
+                return photometry, SegmentationFlag.BACKGROUND_LOST
+            moved = _to_u8(self.background.shifted(total))
+            photometry = segmenter.photometry(image, moved)
+            shift = np.asarray(photometry.shift_px, float)
+            if np.hypot(*shift) < 0.1 * s.camera_moved_px:
+                break
+        expected = self.noise_gray if self.noise_gray is not None else photometry.sigma_gray
+        registered = (
+            np.hypot(*shift) <= 0.5 * s.camera_moved_px
+            and photometry.sigma_gray <= 1.5 * expected + 1.0
+        )
+        if not registered:
+            return photometry, SegmentationFlag.BACKGROUND_LOST
+        self.background.shift(total)
+        return photometry, SegmentationFlag.CAMERA_MOVED

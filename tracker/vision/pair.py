@@ -1,0 +1,396 @@
+"""Segmentation of a synchronised set of views of a rig (docs/design.md sections 4, 6).
+
+Each view is segmented on its own (:class:`tracker.vision.segmentation.Segmenter`; over time,
+:class:`tracker.vision.background.CameraSegmenter`, with a background that follows the scene
+and a region of interest that follows the catheter); then, with the rig
+(:func:`combine_views`, used by :func:`segment_pair` and :class:`PairSegmenter`): an epipolar
+check of every point found in two or more views, and the tip placed in 3-D from the tip
+band's centre (unbiased in every view however the tip points) and the catheter's tangent,
+which removes the bias of a single view's far end when the tip points toward a camera. The
+result maps onto the rows ``[tip, marker_0, ...]`` of each view of
+:class:`tracker.types.Frame`, in the rig's view order (``rig.names``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.catheter import Catheter
+from models.imaging import PinholeView, Rig
+from tracker.types import Frame
+from tracker.vision.background import CameraSegmenter
+from tracker.vision.segmentation import Segmenter, ViewSegmentation, frame_points
+from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True)
+class PairSegmentation:
+    """Every view of a synchronised frame, and the rows of a pipeline Frame.
+
+    Attributes
+    ----------
+    views : tuple of ViewSegmentation
+        One per view, in the rig's order.
+    uv : tuple of arrays (1 + n_markers, 2)
+        Each view's rows ``[tip, marker_0, ...]``, px, NaN for points not found or rejected.
+    cov : tuple of arrays (1 + n_markers, 2, 2)
+        px^2, NaN where the point is missing.
+    rejected : array (1 + n_markers,) of bool
+        Rows found in two or more views whose rays do not meet (epipolar check): withheld in
+        every view, since one of them has picked the wrong point (the catheter overlapping
+        itself in that view).
+    tip_refined : bool
+        The tip was placed from the tip band of two or more views (see
+        :func:`combine_views`).
+    """
+
+    views: tuple[ViewSegmentation, ...]
+    uv: tuple[Array, ...]
+    cov: tuple[Array, ...]
+    rejected: Array
+    tip_refined: bool = False
+
+    def frame(
+        self,
+        time_s: float,
+        q: Array,
+        q_dot: Array | None = None,
+        images: Sequence[Array] | None = None,
+        delta_L_true_rad: float | None = None,
+    ) -> Frame:
+        """The pipeline frame of these views at the given time and joint values."""
+        return Frame(
+            time_s=float(time_s),
+            q=np.asarray(q, float),
+            q_dot=None if q_dot is None else np.asarray(q_dot, float),
+            uv=self.uv,
+            cov=self.cov,
+            images=None if images is None else tuple(images),
+            delta_L_true_rad=delta_L_true_rad,
+        )
+
+
+def _unit_sphere(n: int) -> Array:
+    """n nearly uniform unit vectors (Fibonacci lattice), shape (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z**2)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+_COARSE = _unit_sphere(200)  # about 15 degrees apart
+_CAP_RAD = np.radians(16.0)
+
+
+def _cap(n: int, angle_rad: float) -> Array:
+    """n nearly uniform unit vectors within ``angle_rad`` of +z, shape (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - (1.0 - np.cos(angle_rad)) * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z**2)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+_FINE = _cap(100, _CAP_RAD)  # about 3 degrees apart
+
+
+def _cross(a: Array, b: Array) -> Array:
+    """Cross product of two 3-vectors (np.cross is slow for single vectors)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def _around(t: Array, cap: Array) -> Array:
+    """The cap's directions turned so that +z goes to the unit vector t."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = _cross(t, helper)
+    u /= np.sqrt(u @ u)
+    v = _cross(t, u)
+    return cap @ np.stack([u, v, t])
+
+
+def _tip_from_band(
+    cameras: Sequence[PinholeView],
+    views: Sequence[ViewSegmentation],
+    centre_w: Array,
+    jacobians: Sequence[Array],
+    half_band_mm: float,
+) -> tuple[Array, float]:
+    """The tip in {W}: the tip band's centre moved half a band along the 3-D tangent.
+
+    The band's centroid is the projection of its centre in every view whatever the
+    foreshortening, so the centre ``centre_w`` is triangulated from the centroids. The
+    tangent t is the unit vector that best explains, in every view, where the image ends
+    past the centroid: ``half_band t`` projects to an image vector p (short when t points at
+    the camera), and the end disc of the tube sticks out past the tip by
+    ``pi/4 R |sin a|`` (R the tube's image radius, a the angle between t and the image
+    plane). Per view the residuals are p's offset across the measured direction and the
+    measured extent minus ``p . direction + pi/4 R |sin a|``, px; their squares are summed
+    over the views and minimised over the sphere of directions (a coarse grid, then a fine
+    cap around its best). A view where the tip points at the camera has a short p and an end
+    that is a disc: its poorly defined direction then costs little, which is what makes this
+    robust where intersecting the planes of the image directions is not.
+
+    ``cameras`` and ``views`` are the views that see the tip band, ``jacobians`` their
+    projection Jacobians at the centre (px/mm). Returns the tip in {W} and the misfit (the
+    smallest sum of squared residuals, px^2).
+    """
+    terms = []
+    for camera, seg, J in zip(cameras, views, jacobians, strict=True):
+        x_cam = camera.R_cam_w @ centre_w + camera.t_cam_w
+        ray = (x_cam / np.sqrt(x_cam @ x_cam)) @ camera.R_cam_w  # viewing ray in {W}
+        terms.append((half_band_mm * J.T, ray, 0.25 * np.pi * seg.tube_radius_px,
+                      seg.tip_extent_px, seg.tip_direction))
+
+    def cost(T: Array) -> Array:
+        total = np.zeros(T.shape[0])
+        for JT, ray, cap_px, extent, direction in terms:
+            p = T @ JT
+            along = p @ direction
+            across = p - along[:, None] * direction
+            # The end disc adds to the extent along the measured direction whatever that is:
+            # seen end-on the band is a disc and its measured direction means little.
+            r_along = extent - along - cap_px * np.abs(T @ ray)
+            total += np.einsum("ij,ij->i", across, across) + r_along**2
+        return total
+
+    best = _COARSE[int(np.argmin(cost(_COARSE)))]
+    fine = _around(best, _FINE)
+    costs = cost(fine)
+    k = int(np.argmin(costs))
+    return centre_w + half_band_mm * fine[k], float(costs[k])
+
+
+def segment_pair(
+    segmenter: Segmenter,
+    images: Sequence[Array],
+    backgrounds: Sequence[Array],
+    base_px: Sequence[Array | None] | None = None,
+    rig: Rig | None = None,
+) -> PairSegmentation:
+    """Segment one synchronised frame of every view into the fields of a pipeline Frame.
+
+    Each image against its fixed background, searched whole (no state; see
+    :class:`PairSegmenter` for backgrounds and regions of interest that follow).
+
+    Parameters
+    ----------
+    segmenter : Segmenter
+    images, backgrounds : sequences of uint8 arrays (h, w)
+        One frame and its empty-scene prior per view, in the rig's order.
+    base_px : sequence of arrays (2,) or None, optional
+        The registered base projected into each view.
+    rig : Rig, optional
+        See :func:`combine_views`.
+    """
+    if base_px is None:
+        base_px = (None,) * len(images)
+    views = tuple(
+        segmenter.segment(image, background, base)
+        for image, background, base in zip(images, backgrounds, base_px, strict=True)
+    )
+    return combine_views(segmenter, views, rig)
+
+
+_NUDGE_MM = 1e-3  # finite-difference step of the projection Jacobians at the tip band
+
+
+def combine_views(
+    segmenter: Segmenter, views: Sequence[ViewSegmentation], rig: Rig | None = None
+) -> PairSegmentation:
+    """The frame's rows from its views' segmentations, checked and refined with the rig.
+
+    Parameters
+    ----------
+    segmenter : Segmenter
+        The segmenter of the views (its settings and marker layout).
+    views : sequence of ViewSegmentation
+        One per view, in the rig's order.
+    rig : Rig, optional
+        The calibrated pinhole rig of the images. With it, two cross-view steps run: rows
+        found in two or more views whose reprojections miss a view's point by more than the
+        epipolar gate are withheld (``rejected``); and when two or more views see the tip
+        band, the tip is placed in 3-D from the band's centre and the catheter's tangent and
+        projected back into those views. This removes the bias of a single view's far end
+        when the tip points toward the camera (the end disc of the tube sticks out past the
+        end point).
+    """
+    s = segmenter.settings
+    views = tuple(views)
+    rows = [frame_points(view) for view in views]
+    uv = [r[0] for r in rows]
+    cov = [r[1] for r in rows]
+    rejected = np.zeros(uv[0].shape[0], bool)
+    if rig is None:
+        return PairSegmentation(views, tuple(uv), tuple(cov), rejected)
+    if rig.kind != "pinhole":
+        raise ValueError("combine_views needs the pinhole rig the images were taken with")
+    tip_rows = np.concatenate([[True], segmenter.marker_is_tip])
+    banded = [k for k, view in enumerate(views) if np.all(np.isfinite(view.tip_band_px))]
+    # Epipolar check: each row on its own points; the tip by its band centroids where two or
+    # more views see the band (a far end is half a band away from a band's centre).
+    check = [u.copy() for u in uv]
+    if len(banded) >= 2:
+        for k, view in enumerate(views):
+            check[k][tip_rows] = view.tip_band_px if k in banded else np.nan
+    found = np.array([np.all(np.isfinite(c), axis=-1) for c in check])  # (views, rows)
+    points_w = np.full((rejected.size, 3), np.nan)
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for row in range(rejected.size):
+        seen = tuple(np.flatnonzero(found[:, row]))
+        if len(seen) >= 2:
+            groups.setdefault(seen, []).append(row)
+    for seen, members in groups.items():
+        sub = rig.subset(seen)
+        points_w[members] = sub.reconstruct(*(check[k][members] for k in seen))
+        residual = np.zeros(len(members))
+        variance = np.zeros(len(members))
+        for k, camera in zip(seen, sub.views, strict=True):
+            miss = camera.project(points_w[members]) - check[k][members]
+            residual = np.maximum(residual, np.linalg.norm(miss, axis=-1))
+            variance += np.trace(cov[k][members], axis1=-2, axis2=-1)
+        spread = np.sqrt(np.where(np.isfinite(variance), variance, 0.0))
+        bad = residual > np.maximum(s.epipolar_gate_px, 4.0 * spread)
+        rejected[np.asarray(members)[bad]] = True
+    refined = bool(
+        len(banded) >= 2
+        and found[banded, 0].all()
+        and not rejected[0]
+        and all(np.isfinite(views[k].tip_extent_px * views[k].tube_radius_px) for k in banded)
+    )
+    if refined:
+        half_band = 0.5 * s.band_length_mm
+        centre_w = points_w[0]
+        # One projection per view of the centre and three nudged copies: the centre's image
+        # and the projection Jacobian there by finite differences.
+        nudged = centre_w + np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
+        cameras = [rig.views[k] for k in banded]
+        projected = [camera.project(nudged) for camera in cameras]
+        jacobians = [(p[1:] - p[0]).T / _NUDGE_MM for p in projected]
+        tip_w, misfit = _tip_from_band(
+            cameras, [views[k] for k in banded], centre_w, jacobians, half_band
+        )
+        for k, p, J in zip(banded, projected, jacobians, strict=True):
+            px_per_mm = float(np.linalg.norm(J, axis=-1).max())
+            # The tangent's uncertainty, and what the views disagree on (2 residuals per
+            # view for 2 unknowns), as a variance of the tip in the image.
+            extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit
+            # Half a band from the centre: first order is exact to far below a pixel.
+            uv[k][tip_rows] = p[0] + J @ (tip_w - centre_w)
+            cov[k][tip_rows] = views[k].tip_band_cov + extra * np.eye(2)
+    for u, c in zip(uv, cov, strict=True):
+        u[rejected] = np.nan
+        c[rejected] = np.nan
+    return PairSegmentation(views, tuple(uv), tuple(cov), rejected, refined)
+
+
+class PairSegmenter:
+    """Segments synchronised frames of one rig, catheter and registered base, over time.
+
+    One :class:`tracker.vision.background.CameraSegmenter` per view of the rig (its
+    background model follows slow changes of the scene and re-registers a camera that moved;
+    its region of interest follows the catheter), then the cross-view steps of
+    :func:`combine_views`.
+
+    Parameters
+    ----------
+    catheter : Catheter
+    rig : Rig
+        Pinhole rig of the cameras (e.g. :func:`models.rig_file.load_rig`).
+    R_w_b, o_b_w_mm : arrays (3, 3), (3,)
+        Registered base pose; its origin projected into each view picks the catheter and
+        its base end.
+    backgrounds : sequence of uint8 arrays
+        Prior images of the empty scene, one per view in the rig's order, of the views'
+        image sizes.
+    settings : SegmentationSettings
+    """
+
+    def __init__(
+        self,
+        catheter: Catheter,
+        rig: Rig,
+        R_w_b: Array,
+        o_b_w_mm: Array,
+        backgrounds: Sequence[Array],
+        settings: SegmentationSettings = DEFAULT_SETTINGS,
+    ) -> None:
+        if rig.kind != "pinhole":
+            raise ValueError("PairSegmenter needs a pinhole rig (images are in pixels)")
+        if len(backgrounds) != rig.n_views:
+            raise ValueError(
+                f"need one background image per view ({', '.join(rig.names)}),"
+                f" got {len(backgrounds)}"
+            )
+        self.rig = rig
+        self.segmenter = Segmenter(catheter, settings)
+        o = np.asarray(o_b_w_mm, float)
+        self.cameras = tuple(
+            CameraSegmenter(self.segmenter, _sized(bg, view, name), view.project(o), name)
+            for bg, view, name in zip(backgrounds, rig.views, rig.names, strict=True)
+        )
+
+    @property
+    def backgrounds(self) -> tuple[Array, ...]:
+        """Each camera's current background model (uint8)."""
+        return tuple(camera.background.image for camera in self.cameras)
+
+    @property
+    def base_px(self) -> tuple[Array, ...]:
+        """The registered base projected into each camera, px."""
+        return tuple(camera.base_px for camera in self.cameras)
+
+    def reset(self) -> None:
+        """Search the next frame's images whole (the backgrounds are kept)."""
+        for camera in self.cameras:
+            camera.reset()
+
+    def segment(
+        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
+    ) -> PairSegmentation:
+        """Segment one synchronised frame (one image per view, in the rig's order).
+
+        Parameters
+        ----------
+        images : sequence of uint8 arrays (h, w)
+        predicted_px : sequence of arrays (n, 2) or None, optional
+            Where the catheter's points are expected in each image (e.g. the last estimate's
+            points reprojected), px; each camera searches around them first (see
+            :meth:`CameraSegmenter.segment`).
+        """
+        if len(images) != len(self.cameras):
+            raise ValueError(
+                f"need one image per view ({', '.join(self.rig.names)}), got {len(images)}"
+            )
+        if predicted_px is None:
+            predicted_px = (None,) * len(self.cameras)
+        views = tuple(
+            camera.segment(image, predicted)
+            for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True)
+        )
+        return combine_views(self.segmenter, views, self.rig)
+
+    def frame(
+        self,
+        time_s: float,
+        q: Array,
+        images: Sequence[Array],
+        q_dot: Array | None = None,
+        delta_L_true_rad: float | None = None,
+    ) -> Frame:
+        """Segment a frame's images and return the pipeline Frame (images attached)."""
+        return self.segment(images).frame(time_s, q, q_dot, images, delta_L_true_rad)
+
+
+def _sized(background: Array, view: PinholeView, name: str) -> Array:
+    """The background image, checked to be 8-bit of the camera's image size."""
+    return check_image(
+        background, f"{name} background image", (view.image_size[1], view.image_size[0])
+    )

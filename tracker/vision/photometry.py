@@ -1,0 +1,282 @@
+"""Photometric normalisation of a frame to its background image (docs/vision.md section 4).
+
+Between the capture of the background and a frame, a camera's automatic exposure, a lamp's
+drift or a fluoroscope's automatic brightness control change the gain by 5-10 %, the dark
+level moves, the response curve (gamma) may change, and the camera may be shifted. A fixed
+prior subtracted as it is then finds the catheter everywhere or nowhere.
+
+:func:`fit_photometry` fits, on a sparse grid of pixels, the frame's gray level as a smooth
+tone curve of the background's (a polynomial of degree up to 2: a gain, an offset and a
+curvature, enough for a gamma of 0.9 to 1.1) plus a shift of the whole image to first order
+(the background's gradient times the shift). The fit is robust: a least-squares fit, then a
+second one without the pixels beyond four robust standard deviations (the catheter, an
+occluder); saturated pixels take no part. Its residual is the frame's noise estimate.
+
+Limits: one tone curve for the whole image (a gain that varies across the image and changes
+from frame to frame is not followed, only a slow one through the background model's update,
+:mod:`tracker.vision.background`); the shift is first order, exact to a fraction of a pixel
+for shifts below about the texture's scale (see :func:`register_shift` for larger ones);
+a background of a single gray level gives the gain only (no offset or curvature: with one
+level they cannot be told apart, and do not need to be).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+Array = np.ndarray
+
+LEVELS = np.arange(256, dtype=np.float64)
+_X = LEVELS / 255.0 - 0.5  # the background's gray level, centred, as the fit's variable
+_MIN_SAMPLES = 50
+
+
+@dataclass(frozen=True)
+class Photometry:
+    """How a frame's gray levels relate to those of its background image.
+
+    ``frame(p) = f(background(p - shift_px)) + noise`` away from the catheter.
+
+    Attributes
+    ----------
+    lut : array (256,), float32
+        ``f`` at every background gray level (non-decreasing), gray levels.
+    shift_px : array (2,)
+        Shift of the frame's content relative to the background (x, y), px, to first order.
+    sigma_gray : float
+        Robust standard deviation of the residual (sensor noise, quantisation, anything the
+        fit does not explain), gray levels.
+    gain : float
+        Slope of ``f`` at the background's median gray level (1: unchanged exposure).
+    clipped_fraction : float
+        Fraction of the grid's pixels saturated (0 or 255) in the frame.
+    fitted : bool
+        False when too few pixels could be used (a black or saturated frame).
+    """
+
+    lut: Array
+    shift_px: Array
+    sigma_gray: float
+    gain: float = 1.0
+    clipped_fraction: float = 0.0
+    fitted: bool = True
+
+    @property
+    def lut_u8(self) -> Array:
+        """``f`` rounded to 8 bits, for :func:`cv2.LUT`."""
+        return np.clip(np.rint(self.lut), 0, 255).astype(np.uint8)
+
+    def inverse_lut(self) -> Array:
+        """``f^-1`` at every frame gray level (float32, (256,)): the frame in the
+        background's photometry."""
+        # Strictly increasing for np.interp, by a ramp far below a gray level.
+        ramp = np.asarray(self.lut, np.float64) + 1e-6 * LEVELS
+        return np.interp(LEVELS, ramp, LEVELS).astype(np.float32)
+
+
+def identity_photometry(sigma_gray: float = 0.0) -> Photometry:
+    return Photometry(LEVELS.astype(np.float32), np.zeros(2), float(sigma_gray))
+
+
+def robust_sigma(residual: Array) -> float:
+    """1.4826 x the median absolute deviation from the median (the standard deviation for
+    Gaussian residuals, whatever a few outliers do)."""
+    r = np.asarray(residual, np.float64)
+    if r.size == 0:
+        return float("nan")
+    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
+
+
+@dataclass(frozen=True)
+class BackgroundSamples:
+    """A background image on the fit's grid of pixels: what the fit needs of it.
+
+    Attributes
+    ----------
+    rows, cols : slices
+        The grid in the image.
+    levels : array (n,), uint8
+        The background's gray levels on the grid (raveled).
+    gx, gy : arrays (n,), float64
+        Its central differences there (twice the gradient), x and y.
+    usable : array (n,) of bool
+        Not saturated (0 or 255) in the background.
+    """
+
+    rows: slice
+    cols: slice
+    levels: Array
+    gx: Array
+    gy: Array
+    usable: Array
+
+
+def background_samples(background: Array, stride: int) -> BackgroundSamples:
+    """:class:`BackgroundSamples` of an image on a grid of ``stride`` px (away from the
+    border by at least one pixel, for the differences)."""
+    height, width = background.shape
+    o = max(stride // 2, 1)
+    r0, rm, rp = (slice(o, height - 1, stride), slice(o - 1, height - 2, stride),
+                  slice(o + 1, height, stride))
+    c0, cm, cp = (slice(o, width - 1, stride), slice(o - 1, width - 2, stride),
+                  slice(o + 1, width, stride))
+    levels = background[r0, c0].ravel()
+    gx = np.subtract(background[r0, cp], background[r0, cm], dtype=np.float64).ravel()
+    gy = np.subtract(background[rp, c0], background[rm, c0], dtype=np.float64).ravel()
+    return BackgroundSamples(r0, c0, levels, gx, gy, (levels > 0) & (levels < 255))
+
+
+def _solve_small(M: Array, v: Array) -> Array:
+    """Solve a small symmetric positive definite system (n <= 3) by Gauss-Jordan on Python
+    floats: for a few unknowns, numpy's LAPACK call costs more than the arithmetic."""
+    n = len(v)
+    a = [[float(M[i][j]) for j in range(n)] + [float(v[i])] for i in range(n)]
+    for k in range(n):
+        pivot = a[k][k]
+        if not abs(pivot) > 1e-12:
+            return np.zeros(n)
+        row = [value / pivot for value in a[k]]
+        a[k] = row
+        for i in range(n):
+            if i != k:
+                factor = a[i][k]
+                a[i] = [x - factor * y for x, y in zip(a[i], row, strict=True)]
+    return np.array([a[i][n] for i in range(n)])
+
+
+_POWERS = np.stack([_X**k for k in range(5)])  # (5, 256): x^0 ... x^4 at every gray level
+
+
+def _tone_curve(counts: Array, sums: Array, degree: int) -> Array:
+    """The least-squares tone curve at every gray level from the per-level pixel counts and
+    sums of the frame's gray levels (the fit's variable takes only 256 values, so the normal
+    equations are sums over levels: ``sum_b counts(b) x(b)^(i + j)``)."""
+    if degree == 0:
+        scale = float(sums @ LEVELS) / max(float(counts @ LEVELS**2), 1e-12)
+        return scale * LEVELS
+    n = degree + 1
+    moments = _POWERS[: 2 * n - 1] @ counts
+    M = [[moments[i + j] for j in range(n)] for i in range(n)]
+    coef = _solve_small(M, _POWERS[:n] @ sums)
+    return coef @ _POWERS[:n]
+
+
+def fit_photometry(
+    image: Array,
+    background: Array,
+    stride: int = 12,
+    normalise: bool = True,
+    fit_shift: bool = True,
+    samples: BackgroundSamples | None = None,
+) -> Photometry:
+    """Fit the frame's tone curve and shift against its background on a grid of pixels.
+
+    Parameters
+    ----------
+    image, background : arrays (h, w), uint8
+    stride : int
+        Spacing of the grid, px (stride 12 on 640 x 480: about 2 100 pixels).
+    normalise : bool
+        Fit the tone curve; otherwise ``f`` is the identity (the frame is taken to have the
+        background's photometry) and only the noise (and the shift) is estimated.
+    fit_shift : bool
+        Also estimate the shift of the whole image.
+    samples : BackgroundSamples, optional
+        ``background_samples(background, stride)``, if kept from frame to frame.
+
+    Returns
+    -------
+    Photometry
+        ``fitted`` is False, and the noise the robust spread of ``image - background``, when
+        fewer than 50 grid pixels are unsaturated (an all-black or all-white frame).
+
+    Notes
+    -----
+    The tone curve is fitted twice, the second time without the pixels beyond four robust
+    standard deviations (1.4826 x the median absolute residual) of the first: the catheter
+    and occluders take no part. The noise is the root mean square of the second fit's
+    residual within the same bound; the shift is the least-squares fit of that residual to
+    the background's gradient, scaled by the tone curve's slope at the background's mean
+    gray level (``gain``).
+    """
+    if samples is None:
+        samples = background_samples(background, stride)
+    frame_u8 = image[samples.rows, samples.cols].ravel()
+    b_u8 = samples.levels
+    usable = samples.usable & (frame_u8 > 0) & (frame_u8 < 255)
+    n = int(np.count_nonzero(usable))
+    clipped = 1.0 - n / max(frame_u8.size, 1)
+    everywhere = n == frame_u8.size
+    if n < _MIN_SAMPLES:
+        sigma = robust_sigma(frame_u8.astype(np.float64) - b_u8)
+        return Photometry(LEVELS.astype(np.float32), np.zeros(2), sigma, 0.0, clipped, False)
+    if not everywhere:
+        frame_u8, b_u8 = frame_u8[usable], b_u8[usable]
+    frame = frame_u8.astype(np.float64)
+    counts = np.bincount(b_u8, minlength=256).astype(np.float64)
+    mean_level = float(counts @ LEVELS) / n
+    lut = LEVELS
+    if normalise:
+        # A curvature needs a spread of gray levels, an offset at least two of them.
+        spread = np.sqrt(max(float(counts @ LEVELS**2) / n - mean_level**2, 0.0))
+        degree = 2 if spread >= 12.0 else (1 if spread >= 3.0 else 0)
+        sums = np.bincount(b_u8, weights=frame, minlength=256)
+        lut = _tone_curve(counts, sums, degree)
+    residual = frame - lut[b_u8]
+    magnitude = np.abs(residual)
+    half = n // 2
+    gate = max(4.0 * 1.4826 * float(np.partition(magnitude, half)[half]), 2.0)
+    out = magnitude > gate
+    n_out = int(np.count_nonzero(out))
+    if normalise and n_out:
+        b_out = b_u8[out]
+        counts_in = counts - np.bincount(b_out, minlength=256)
+        sums_in = sums - np.bincount(b_out, weights=frame[out], minlength=256)
+        lut = _tone_curve(counts_in, sums_in, degree)
+        residual = frame - lut[b_u8]
+        out = np.abs(residual) > gate
+        n_out = int(np.count_nonzero(out))
+    residual[out] = 0.0
+    n_in = n - n_out
+    sigma = float(np.sqrt(residual @ residual / n_in)) if n_in > 10 else gate / 4.0
+    # The slope of the tone curve at the background's mean gray level.
+    level = min(max(round(mean_level), 1), 254)
+    gain = 0.5 * float(lut[level + 1] - lut[level - 1])
+    shift = np.zeros(2)
+    if fit_shift and abs(gain) > 1e-6:
+        # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d on the inliers (their
+        # residual is zero elsewhere; the outliers' gradients are taken out of G).
+        gx, gy = samples.gx, samples.gy
+        if not everywhere:
+            gx, gy = gx[usable], gy[usable]
+        G = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
+        if n_out:
+            ox, oy = gx[out], gy[out]
+            G -= np.array([[ox @ ox, ox @ oy], [ox @ oy, oy @ oy]])
+        # Central differences are twice the gradient.
+        shift = -2.0 * _solve_small(G, [gx @ residual, gy @ residual]) / gain
+    lut = np.maximum.accumulate(lut)
+    return Photometry(lut.astype(np.float32), shift, sigma, gain, clipped, True)
+
+
+def register_shift(
+    image: Array, background: Array, photometry: Photometry, max_shift_px: float
+) -> Array | None:
+    """The shift of the frame's content relative to the background, px, or None.
+
+    Phase correlation of the frame with the background mapped to the frame's tone curve
+    (both at half resolution, with a Hann window), for shifts beyond the first-order
+    estimate's reach; None when the correlation peak is weak (the scene itself changed) or
+    the shift is larger than ``max_shift_px``.
+    """
+    small_frame = cv2.pyrDown(image).astype(np.float32)
+    small_bg = cv2.pyrDown(cv2.LUT(background, photometry.lut_u8)).astype(np.float32)
+    window = cv2.createHanningWindow(small_frame.shape[::-1], cv2.CV_32F)
+    (dx, dy), response = cv2.phaseCorrelate(small_bg, small_frame, window)
+    shift = 2.0 * np.array([dx, dy])
+    if response < 0.1 or np.hypot(*shift) > max_shift_px:
+        return None
+    return shift
