@@ -1,4 +1,4 @@
-"""Calibration of a segment's modal shape matrix A from measured shapes (DESIGN.md section 3).
+"""Calibration of a segment's modal shape matrix A from measured shapes (docs/design.md section 3).
 
 The modal model ``theta(s, q) = psi(s / L)^T A eta(q)`` is linear in ``A``. Sampled on a grid of
 arclengths ``s_k`` and joint values ``q_j`` it reads, row by row,

@@ -1,7 +1,7 @@
 """Reading a catheter model from TOML: the only I/O in ``models``.
 
 The format is documented in docs/model-file.md; ``models/default_catheter.toml`` is the
-default model of DESIGN.md section 3 written in it.
+default model of docs/design.md section 3 written in it.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""OpenIGTLink output for 3D Slicer (DESIGN.md section 7): the tip frame and the bending plane.
+"""OpenIGTLink output for 3D Slicer (docs/design.md section 7): the tip frame and the bending plane.
 
 An OpenIGTLink server (pyigtl) on 127.0.0.1:18944 by default sends, for every frame with a
 valid estimate, two TRANSFORM messages in the world frame {W} (mm):
