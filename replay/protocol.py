@@ -42,11 +42,12 @@ import numpy as np
 
 from models.catheter import Catheter
 from models.imaging import Rig, default_orthographic_rig
-from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+from models.model_file import DEFAULT_MODEL_PATH, catheter_from_dict, load_catheter
 from models.pose import Pose
 from models.rig_file import rig_toml
 from models.rotations import wrap_angle
-from replay.simulation.render import ImagingNuisance
+from replay.parallel import single_blas_thread
+from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import (
     JointTrajectory,
     NoiseSettings,
@@ -57,6 +58,7 @@ from replay.simulation.simulator import (
 )
 from tracker.io.recording import FrameLabels, MarkerQuality, RecordingWriter
 from tracker.types import Frame
+from tracker.vision.pair import PairSegmenter
 
 Array = np.ndarray
 
@@ -316,7 +318,6 @@ class Protocol:
 
 def _scene(settings: ProtocolSettings, catheter: Catheter) -> Scene:
     if settings.rig == "pinhole":
-        from replay.simulation.render import default_render_rig
 
         rig: Rig = default_render_rig()
     else:
@@ -442,14 +443,12 @@ class _Job:
 def _catheter_from_text(text: str) -> Catheter:
     import tomllib
 
-    from models.model_file import catheter_from_dict
 
     return catheter_from_dict(tomllib.loads(text), "model")
 
 
 def configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
     """The frames of one configuration with their labels and segmentation quality."""
-    from replay.parallel import single_blas_thread
 
     with single_blas_thread():
         return _configuration_frames(job)
@@ -488,8 +487,6 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
             model_joint_offset=offset,
         )
         return [(f, label, (None, None)) for f, label in zip(frames, labels, strict=True)]
-    from replay.simulation.render import Renderer, RenderSettings
-    from tracker.vision.pair import PairSegmenter
 
     renderer = Renderer(
         catheter,
@@ -515,7 +512,6 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
 
 def backgrounds(settings: ProtocolSettings, catheter: Catheter) -> tuple[Array, Array]:
     """The empty-scene priors of both cameras (the same for every noise level)."""
-    from replay.simulation.render import Renderer
 
     scene = _scene(settings, catheter)
     renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=settings.seed)

@@ -418,11 +418,11 @@ def quadratic_terms(dq: Array) -> Array:
 def deviation_jacobian(J: Array, K: Array, dq: Array) -> Array:
     """Jacobian of ``J dq + K quadratic_terms(dq)`` at dq: ``J + K dquad/ddq`` (..., 3, 2).
 
-    ``dq`` (..., 2) broadcasts against the leading axes of J (..., 3, 2) and K (..., 3, 3).
+    ``dq`` (..., 2) broadcasts against the leading axes of J (..., 3, 2) and K (..., 3, 3),
+    which give the shape of the result.
     """
     p, d = dq[..., 0, None], dq[..., 1, None]
-    lead = np.broadcast_shapes(J.shape[:-2], p.shape[:-1])
-    out = np.broadcast_to(J, lead + J.shape[-2:]).copy()
+    out = J.copy()
     out[..., 0] += 2 * p * K[..., 0] + d * K[..., 1]
     out[..., 1] += p * K[..., 1] + 2 * d * K[..., 2]
     return out

@@ -190,14 +190,6 @@ class _Update:
     fused_tip: Array
     innovation: list | None
 
-    def leading(self, B: int, lead: Array, name: str, fill) -> Array:
-        """Field ``name`` of each trial's hypothesis ``lead`` (B,); ``fill`` if not updated."""
-        values = getattr(self, name)
-        out = np.full((B,) + values.shape[1:], fill, dtype=values.dtype)
-        mine = self.h == lead[self.b]
-        out[self.b[mine]] = values[mine]
-        return out
-
 
 class FilterBank:
     """B independent bending-plane UKFs, each a Gaussian sum of up to ``max_hypotheses``.
@@ -473,22 +465,24 @@ class FilterBank:
         spawn = np.zeros(B, dtype=bool)
         if updating.any():
             update = self._update(frame, updating, M, scale)
+            # The report follows each trial's leading hypothesis.
             lead = self.leading()
-            st = update.leading(B, lead, "status", 0)
-            touched = running & ~all_wide
-            flags |= np.where(touched, st, 0)
-            nis = update.leading(B, lead, "nis", np.nan)
-            out.nis = np.where(touched, nis, np.nan)
-            dof = update.leading(B, lead, "dof", 0)
-            out.nis_dof = np.where(touched & np.isfinite(nis), dof, 0)
+            mine = update.h == lead[update.b]
+            row = np.full(B, -1)
+            row[update.b[mine]] = np.flatnonzero(mine)
+            touched = running & ~all_wide & (row >= 0)
+            row = np.maximum(row, 0)
+            st = np.where(touched, update.status[row], 0)
+            flags |= st
+            out.nis = np.where(touched, update.nis[row], np.nan)
+            out.nis_dof = np.where(touched & np.isfinite(out.nis), update.dof[row], 0)
             if B == 1 and touched[0]:
-                rows = np.flatnonzero(update.h == lead[0])
-                out.innovation[0] = update.innovation[rows[0]] if rows.size else None
-            self.rejected += np.where(touched, update.leading(B, lead, "rejected", 0), 0)
+                out.innovation[0] = update.innovation[row[0]]
+            self.rejected += np.where(touched, update.rejected[row], 0)
             held = (st & _F["HELD"]) != 0
             all_rejected = touched & held & ((st & _F["OUTLIER_REJECTED"]) != 0)
             self.bad_run = np.where(touched & ~all_rejected, 0, self.bad_run)
-            fused_tip |= touched & update.leading(B, lead, "fused_tip", False)
+            fused_tip |= touched & update.fused_tip[row]
             spawn = all_rejected & three_d
             if s.estimate_noise:
                 self._adapt_noise(touched, out.nis, out.nis_dof)

@@ -35,7 +35,6 @@ from tracker.vision.segmentation import (
     Segmenter,
     ViewSegmentation,
     detection_backgrounds,
-    smooth_for_detection,
 )
 from tracker.vision.settings import SegmentationSettings, check_image
 
@@ -60,10 +59,10 @@ class BackgroundModel:
     image : array (h, w), uint8
         The current model, as the segmentation uses it...
     prepared : pair of arrays, uint8
-        ...and as its detection step does (:func:`detection_backgrounds`: smoothed, updated
-        with every stripe, and at half resolution, updated after every cycle of stripes)...
+        ...as its detection step does (:func:`detection_backgrounds`)...
     samples : BackgroundSamples
-        ...and as the photometric fit does (also updated after every cycle of stripes).
+        ...and as the photometric fit does; both are recomputed after every cycle of stripes
+        (the detection and the fit do not need the last gray level of a slow change).
     shift_px : array (2,)
         Total shift the model has been re-registered by since the start, px.
     """
@@ -139,9 +138,6 @@ class BackgroundModel:
                            cv2.LINE_8, _SHIFT)
         cv2.accumulateWeighted(in_photometry, level, s.background_rate, mask)
         self.image[y0:y1] = _to_u8(level)
-        # The smoothing reaches one row beyond the stripe on each side.
-        a, b = max(y0 - 1, 0), min(y1 + 1, height)
-        self.prepared[0][y0:y1] = smooth_for_detection(self.image[a:b])[y0 - a : y1 - a]
         if self._stripe == 0:
             self._refresh()
 

@@ -244,16 +244,26 @@ def combine_views(
     points_w = np.full((rejected.size, 3), np.nan)
     groups: dict[tuple[int, ...], list[int]] = {}
     for row in range(rejected.size):
-        seen = tuple(np.flatnonzero(found[:, row]))
+        seen = tuple(int(k) for k in np.flatnonzero(found[:, row]))
         if len(seen) >= 2:
             groups.setdefault(seen, []).append(row)
+    # The tip band's centre, projected with three nudged copies (the projection Jacobian
+    # there by finite differences) in the same call as its group's points.
+    nudges = np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
+    centre_px: dict[int, Array] = {}
     for seen, members in groups.items():
         sub = rig.subset(seen)
         points_w[members] = sub.reconstruct(*(check[k][members] for k in seen))
+        points = points_w[members]
+        if members[0] == 0:
+            points = np.vstack([points, points_w[0] + nudges])
         residual = np.zeros(len(members))
         variance = np.zeros(len(members))
         for k, camera in zip(seen, sub.views, strict=True):
-            miss = camera.project(points_w[members]) - check[k][members]
+            projected = camera.project(points)
+            if members[0] == 0:
+                centre_px[k] = projected[len(members) :]
+            miss = projected[: len(members)] - check[k][members]
             residual = np.maximum(residual, np.linalg.norm(miss, axis=-1))
             variance += np.trace(cov[k][members], axis1=-2, axis2=-1)
         spread = np.sqrt(np.where(np.isfinite(variance), variance, 0.0))
@@ -268,22 +278,18 @@ def combine_views(
     if refined:
         half_band = 0.5 * s.band_length_mm
         centre_w = points_w[0]
-        # One projection per view of the centre and three nudged copies: the centre's image
-        # and the projection Jacobian there by finite differences.
-        nudged = centre_w + np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
-        cameras = [rig.views[k] for k in banded]
-        projected = [camera.project(nudged) for camera in cameras]
-        jacobians = [(p[1:] - p[0]).T / _NUDGE_MM for p in projected]
+        jacobians = [(centre_px[k][1:] - centre_px[k][0]).T / _NUDGE_MM for k in banded]
         tip_w, misfit = _tip_from_band(
-            cameras, [views[k] for k in banded], centre_w, jacobians, half_band
+            [rig.views[k] for k in banded], [views[k] for k in banded], centre_w, jacobians,
+            half_band,
         )
-        for k, p, J in zip(banded, projected, jacobians, strict=True):
+        for k, J in zip(banded, jacobians, strict=True):
             px_per_mm = float(np.linalg.norm(J, axis=-1).max())
             # The tangent's uncertainty, and what the views disagree on (2 residuals per
             # view for 2 unknowns), as a variance of the tip in the image.
             extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit
             # Half a band from the centre: first order is exact to far below a pixel.
-            uv[k][tip_rows] = p[0] + J @ (tip_w - centre_w)
+            uv[k][tip_rows] = centre_px[k][0] + J @ (tip_w - centre_w)
             cov[k][tip_rows] = views[k].tip_band_cov + extra * np.eye(2)
     for u, c in zip(uv, cov, strict=True):
         u[rejected] = np.nan
