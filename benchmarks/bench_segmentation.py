@@ -117,18 +117,20 @@ def main() -> None:
     for hog in hogs:
         hog.start()
     try:
-        times = {}
-        for name, settings in SETUPS.items():
-            segmenter = PairSegmenter(catheter, rig, np.eye(3), BASE_W, renderer.backgrounds,
-                                      settings)
-            predicted = name == "ROI, predicted"
-            for pair in pairs[:10]:  # warm-up
-                segmenter.segment(pair.images, pair.points_px if predicted else None)
-            times[name] = [
-                timed(segmenter.segment, pairs[k % len(pairs)].images,
-                      pairs[k % len(pairs)].points_px if predicted else None)
-                for k in range(args.frames)
-            ]
+        segmenters = {
+            name: PairSegmenter(catheter, rig, np.eye(3), BASE_W, renderer.backgrounds, settings)
+            for name, settings in SETUPS.items()
+        }
+        times = {name: [] for name in SETUPS}
+        # Round robin over the set-ups, frame by frame: a change of the machine's load
+        # touches them all alike.
+        for k in range(-10, args.frames):  # 10 frames of warm-up
+            pair = pairs[k % len(pairs)]
+            for name, segmenter in segmenters.items():
+                predicted = pair.points_px if name == "ROI, predicted" else None
+                t = timed(segmenter.segment, pair.images, predicted)
+                if k >= 0:
+                    times[name].append(t)
         view = PairSegmenter(catheter, rig, np.eye(3), BASE_W, renderer.backgrounds).cameras[0]
         single = [timed(view.segment, pairs[k % len(pairs)].images[0])
                   for k in range(args.frames)]

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import fcntl
 import io
 import json
 import os
@@ -70,12 +71,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def cathtrack(*argv: str, **popen) -> subprocess.CompletedProcess | subprocess.Popen:
-    """Run a cathtrack command in a child process (``popen``: start it and return)."""
-    command = [sys.executable, "-m", "replay.cli", *argv]
-    if popen:
-        return subprocess.Popen(command, cwd=ROOT, **popen)
-    return subprocess.run(command, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+def cathtrack_command(*argv: str) -> list[str]:
+    return [sys.executable, "-m", "replay.cli", *argv]
+
+
+def cathtrack(*argv: str) -> None:
+    """Run a cathtrack command in a child process."""
+    subprocess.run(cathtrack_command(*argv), cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
 
 
 def save_png(png: bytes, path: Path) -> Path:
@@ -205,12 +207,13 @@ class Chromium:
         self._from_browser, from_browser_w = os.pipe()
 
         def pipes() -> None:  # the child's fds 3 and 4 are the protocol's
-            os.dup2(to_browser_r, 3)
-            os.dup2(from_browser_w, 4)
+            high = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (to_browser_r, from_browser_w)]
+            os.dup2(high[0], 3)
+            os.dup2(high[1], 4)
 
         self.process = subprocess.Popen(
             [executable, *CHROMIUM_FLAGS, "about:blank"],
-            pass_fds=(to_browser_r, from_browser_w),
+            pass_fds=(3, 4),  # kept open after pipes() (the rest is closed after it runs)
             preexec_fn=pipes,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -256,19 +259,24 @@ class Chromium:
 
 def web_screenshot(work: Path, wait_s: float) -> Path:
     """``cathtrack demo --serve`` hosts the web viewer; Chromium opens the URL it prints."""
-    demo = cathtrack(
-        "demo", "--serve", "--seconds", "8", "--save", str(work / "web_demo.rrd"),
-        popen=True, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    demo = subprocess.Popen(
+        cathtrack_command("demo", "--serve", "--seconds", "8", "--save", str(work / "web.rrd")),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     url = None
     try:
+        # The URL comes first; the browser starts once the run is over and the demo only
+        # serves it (software WebGL in Chromium would otherwise starve the real-time loop).
         for line in demo.stdout:
-            if "web viewer http" in line:
+            if url is None and "web viewer http" in line:
                 url = "http" + line.split("web viewer http", 1)[1].split(";")[0].strip()
+                log(f"cathtrack demo --serve: {url}")
+            if line.startswith("serving the session"):
                 break
         if url is None:
             raise RuntimeError("cathtrack demo --serve printed no web viewer URL")
-        log(f"cathtrack demo --serve: {url}")
         browser = Chromium()
         try:
             png = browser.screenshot(url, wait_s)
@@ -289,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--replay-rrd", type=Path, help="use this replay.rrd (default: make)")
     parser.add_argument("--web", action="store_true", help="also the web viewer in Chromium")
     parser.add_argument(
-        "--web-wait", type=float, default=60.0, help="seconds the web viewer gets to load (60)"
+        "--web-wait", type=float, default=90.0, help="seconds the web viewer gets to load (90)"
     )
     parser.add_argument("--work", type=Path, help="keep the recordings in this folder")
     args = parser.parse_args(argv)

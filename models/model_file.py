@@ -172,6 +172,6 @@ def load_catheter(path: str | Path) -> Catheter:
         raise ModelFileError(f"cannot read model file {path}: {exc.strerror or exc}") from None
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise ModelFileError(f"{path}: malformed TOML: {exc}") from None
     return catheter_from_dict(data, str(path))

@@ -35,47 +35,182 @@ VIEW_NAMES = DEFAULT_VIEW_NAMES  # a file without a ``views`` list: the bi-plane
 MAX_VIEWS = 8
 RESERVED_TABLES = frozenset({"base", "calibration", "format", "version", "views"})
 ROTATION_TOLERANCE = 1e-3
-MAX_DISTANCE_MM = 1e5
 MODELS = ("pinhole", "orthographic")
 NORMAL_TOLERANCE_RAD = 1e-3
 """How far ``normal_w`` may be from the camera's viewing direction when both are given."""
+
+# Limits of a plausible rig: values outside are typing or calibration errors, refused with one
+# line naming the file and the key (a distortion k1 = 1e30 gave confident estimates 85 deg
+# off; a base 1e300 mm away no estimate at all).
+MAX_DISTANCE_MM = 1e5
+"""Cameras and the catheter base are within 100 m of the world origin."""
+IMAGE_SIZE_RANGE_PX = (1, 1 << 16)
+FOCAL_LENGTH_RANGE_PX = (1.0, 1e6)
+MAX_DISTORTION_COEFFICIENT = 1e9
+"""|k1|, |k2|, |k3| at most this (a narrow lens's calibration may give k3 in the thousands:
+the coefficients matter only through what they do within the image, checked next)."""
+MAX_DISTORTION_SCALE = 3.0
+"""Within the image, radial distortion scales the radius by between 1/3 and 3."""
+MAX_TANGENTIAL_DISTORTION = 0.5
+"""|p1|, |p2| at most this (real lenses: below 0.01)."""
+ROTATION_RANGE_RAD = (-2 * np.pi, 2 * np.pi)
 
 
 class RigFileError(ValueError):
     """A rig file that cannot be read or does not describe a valid rig."""
 
 
-def _array(table: dict[str, Any], key: str, shape: tuple[int, ...], where: str) -> Array:
+def _is_number(x: Any) -> bool:
+    """A TOML integer or float; a boolean is not a number."""
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
+def _shape_of(value: Any) -> tuple[int, ...] | None:
+    """The shape of nested lists of numbers (None: not a regular array of numbers)."""
+    if _is_number(value):
+        return ()
+    if not isinstance(value, list) or not value:
+        return None
+    shapes = {_shape_of(v) for v in value}
+    if len(shapes) != 1 or None in shapes:
+        return None
+    return (len(value), *shapes.pop())
+
+
+def _array(
+    table: dict[str, Any],
+    key: str,
+    shape: tuple[int, ...],
+    where: str,
+    max_abs: float | None = None,
+    unit: str = "",
+) -> Array:
+    """``table[key]`` as floats of the given shape: numbers only (a boolean or a string is
+    not), finite, and of magnitude at most ``max_abs``."""
     if key not in table:
         raise RigFileError(f"{where}: missing key '{key}'")
-    try:
-        value = np.array(table[key], dtype=float)
-    except (TypeError, ValueError):
-        raise RigFileError(f"{where}: '{key}' must be numbers of shape {shape}") from None
-    if value.shape != shape:
-        raise RigFileError(f"{where}: '{key}' must have shape {shape}, got {value.shape}")
-    if not np.all(np.isfinite(value)):
+    value = table[key]
+    found = _shape_of(value)
+    if found is None:
+        raise RigFileError(
+            f"{where}: '{key}' must be numbers of shape {shape}, got {_short(value)}"
+        )
+    if found != shape:
+        raise RigFileError(f"{where}: '{key}' must have shape {shape}, got {found}")
+    array = np.array(value, dtype=float)
+    if not np.all(np.isfinite(array)):
         raise RigFileError(f"{where}: '{key}' contains non-finite values")
-    return value
+    if max_abs is not None and np.max(np.abs(array), initial=0.0) > max_abs:
+        raise RigFileError(
+            f"{where}: '{key}' must be at most {max_abs:g}{unit} in magnitude, got"
+            f" {np.max(np.abs(array)):.3g}{unit}"
+        )
+    return array
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check_intrinsics(K: Array, dist: Array, size: tuple[int, int], where: str) -> None:
+    """Focal lengths, principal point and distortion within the limits of a real camera."""
+    low, high = FOCAL_LENGTH_RANGE_PX
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not low <= f <= high:
+            raise RigFileError(
+                f"{where}: K focal length {name} must be in [{low:g}, {high:g}] px, got {f:.6g}"
+            )
+    width, height = size
+    for name, c, n in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+        if not -n <= c <= 2 * n:
+            raise RigFileError(
+                f"{where}: K principal point {name} = {c:.6g} px is more than an image size"
+                f" ({n} px) outside the image"
+            )
+    radial, tangential = dist[[0, 1, 4]], dist[2:4]
+    if np.max(np.abs(radial)) > MAX_DISTORTION_COEFFICIENT:
+        raise RigFileError(
+            f"{where}: dist radial coefficients k1, k2, k3 must be at most"
+            f" {MAX_DISTORTION_COEFFICIENT:g} in magnitude, got {radial.tolist()}"
+        )
+    if np.max(np.abs(tangential)) > MAX_TANGENTIAL_DISTORTION:
+        raise RigFileError(
+            f"{where}: dist tangential coefficients p1, p2 must be at most"
+            f" {MAX_TANGENTIAL_DISTORTION:g} in magnitude, got {tangential.tolist()}"
+        )
+    problem = _radial_problem(K, radial, size)
+    if problem is not None:
+        raise RigFileError(f"{where}: dist is not valid over the whole image: {problem}")
+
+
+def _radial_problem(K: Array, radial: Array, size: tuple[int, int]) -> str | None:
+    """Why the radial distortion does not map the image one to one, or None.
+
+    The distorted radius ``r_d(r) = r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` (normalised
+    coordinates) must grow until it reaches the image's farthest corner, else pixels there
+    undistort to two rays (the image folds over) or to none; and on the way it must stay
+    within a factor :data:`MAX_DISTORTION_SCALE` of ``r`` (a k1 of 1e30 gave estimates 85 deg
+    off with confident error bars).
+    """
+    if not np.any(radial):
+        return None
+    k1, k2, k3 = radial
+    width, height = size
+    corners = np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [width, height]])
+    reach = float(np.max(np.linalg.norm((corners - K[:2, 2]) / np.diag(K)[:2], axis=1)))
+    r = np.linspace(0.0, (MAX_DISTORTION_SCALE + 0.1) * reach, 4001)[1:]
+    r2 = r * r
+    scale = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + r2 * 7 * k3))
+    r_d = r * scale
+    inside = np.flatnonzero(r_d >= reach)
+    if not inside.size:
+        return f"it shrinks the image corner's radius {reach:.3g} (normalised) more than 3-fold"
+    within = slice(0, inside[0] + 1)
+    falling = np.flatnonzero(slope[within] <= 0)
+    if falling.size:
+        return (
+            f"the distorted radius stops growing at {r_d[falling[0]]:.3g} (normalised), short"
+            f" of the image corner at {reach:.3g}: the image folds over"
+        )
+    worst = float(np.max(np.abs(np.log(scale[within]))))
+    if worst > np.log(MAX_DISTORTION_SCALE):
+        return (
+            f"it scales radii within the image by up to {np.exp(worst):.3g}"
+            f" (at most {MAX_DISTORTION_SCALE:g} for a real lens)"
+        )
+    return None
+
+
+def _image_size(table: dict[str, Any], where: str) -> tuple[int, int]:
+    size = table.get("image_size")
+    low, high = IMAGE_SIZE_RANGE_PX
+    if (
+        not isinstance(size, list)
+        or len(size) != 2
+        or not all(isinstance(n, int) and not isinstance(n, bool) for n in size)
+        or not all(low <= n <= high for n in size)
+    ):
+        raise RigFileError(
+            f"{where}: image_size must be [width, height], integers in [{low}, {high}] px, got"
+            f" {_short(size)}"
+        )
+    return size[0], size[1]
 
 
 def camera_from_table(table: Any, where: str) -> PinholeView:
     """A pinhole view from one ``[front]`` / ``[side]`` table (validated)."""
     if not isinstance(table, dict):
         raise RigFileError(f"{where}: expected a table")
-    size = table.get("image_size")
-    if (
-        not isinstance(size, list)
-        or len(size) != 2
-        or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in size)
-    ):
-        raise RigFileError(f"{where}: image_size must be [width, height] in px, got {size!r}")
+    size = _image_size(table, where)
     K = _array(table, "K", (3, 3), where)
     dist = _array(table, "dist", (5,), where) if "dist" in table else np.zeros(5)
-    R = _array(table, "R_cam_w", (3, 3), where)
-    t = _array(table, "t_cam_w", (3,), where)
+    R = _array(table, "R_cam_w", (3, 3), where, max_abs=1.0 + ROTATION_TOLERANCE)
+    t = _array(table, "t_cam_w", (3,), where, max_abs=MAX_DISTANCE_MM, unit=" mm")
+    _check_intrinsics(K, dist, size, where)
     try:
-        view = PinholeView(K, R, t, dist, (size[0], size[1]))
+        view = PinholeView(K, R, t, dist, size)
     except ValueError as exc:
         raise RigFileError(f"{where}: {exc}") from None
     if "normal_w" in table:
@@ -90,7 +225,7 @@ def camera_from_table(table: Any, where: str) -> PinholeView:
 
 
 def _unit_normal(table: dict[str, Any], where: str) -> Array:
-    n = _array(table, "normal_w", (3,), where)
+    n = _array(table, "normal_w", (3,), where, max_abs=1e6)
     norm = np.linalg.norm(n)
     if norm < 1e-12:
         raise RigFileError(f"{where}: normal_w must be a non-zero vector")
@@ -184,6 +319,12 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinho
             if not isinstance(table, dict):
                 raise RigFileError(f"{where}: expected a table")
             angle = table.get("in_plane_rotation_rad", 0.0)
+            low, high = ROTATION_RANGE_RAD
+            if not _is_number(angle) or not low <= angle <= high:
+                raise RigFileError(
+                    f"{where}: in_plane_rotation_rad must be a number in [{low:.6g},"
+                    f" {high:.6g}] rad, got {_short(angle)}"
+                )
             try:
                 views.append(OrthographicPlane.from_normal(_unit_normal(table, where), angle))
             except ValueError as exc:
@@ -216,11 +357,15 @@ def read_rig_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RigFileError(f"cannot read rig file {path}: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise RigFileError(
+            f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})"
+        ) from None
+    except OSError as exc:
+        raise RigFileError(f"cannot read rig file {path}: {exc.strerror or exc}") from None
     try:
         return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise RigFileError(f"{path}: malformed TOML: {exc}") from None
 
 
@@ -236,10 +381,10 @@ def load_rig(path: str | Path, model: str = "pinhole") -> Rig:
     return rig_from_dict(read_rig_file(path), str(path), model)
 
 
-def written_model(data: dict[str, Any]) -> str:
+def written_model(data: dict[str, Any], source: str = "rig") -> str:
     """The model a rig was written as: ``"pinhole"`` where its views have cameras (``K``),
     ``"orthographic"`` for planes only."""
-    first = data.get(view_names(data)[0])
+    first = data.get(view_names(data, source)[0])
     return "pinhole" if isinstance(first, dict) and "K" in first else "orthographic"
 
 
@@ -257,10 +402,8 @@ def base_from_dict(data: dict[str, Any], source: str = "rig") -> Pose | None:
     where = f"{source} [base]"
     if not isinstance(base, dict):
         raise RigFileError(f"{where}: expected a table")
-    R_w_b = _array(base, "R_w_b", (3, 3), where)
-    o_b_w_mm = _array(base, "o_b_w_mm", (3,), where)
-    if np.max(np.abs(o_b_w_mm)) > MAX_DISTANCE_MM:
-        raise RigFileError(f"{where}: o_b_w_mm is more than {MAX_DISTANCE_MM:g} mm from {{W}}")
+    R_w_b = _array(base, "R_w_b", (3, 3), where, max_abs=1.0 + ROTATION_TOLERANCE)
+    o_b_w_mm = _array(base, "o_b_w_mm", (3,), where, max_abs=MAX_DISTANCE_MM, unit=" mm")
     # A rotation typed by hand (or rounded when written) is orthonormal to a few digits only:
     # within ROTATION_TOLERANCE it is replaced by the nearest rotation; beyond, it is refused.
     U, _, Vt = np.linalg.svd(R_w_b)
@@ -285,9 +428,9 @@ def rig_from_toml(
     """
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
         raise RigFileError(f"{source}: malformed TOML: {exc}") from None
-    rig = rig_from_dict(data, source, model or written_model(data))
+    rig = rig_from_dict(data, source, model or written_model(data, source))
     return rig, base_from_dict(data, source)
 
 

@@ -2,21 +2,33 @@
 
 ``main(argv)`` only wires things together so tests can call it: this module holds the parser
 and each command's ``run(args)`` is in :mod:`replay.commands`. Errors a user can cause end in
-one clear line on stderr and exit code 2, not a traceback.
+one clear line on stderr and exit code 2, not a traceback; Ctrl-C, at any moment, in one line
+and exit code 130.
+
+This module imports only what builds the parser quickly; rerun (and every command's libraries)
+load inside ``main``'s error handling, so a Ctrl-C while they load is handled too.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from importlib import import_module
 
 from replay.setup_commands import add_fit_model_parser, add_import_parser, add_register_parser
-from tracker import __version__
-from tracker.viewer.output import add_rerun_args
 
 DEMO_RRD = "out/demo.rrd"
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a process that Ctrl-C ended
+
+
+def add_rerun_args(parser: argparse.ArgumentParser, **kwargs) -> None:
+    """:func:`tracker.viewer.output.add_rerun_args`, imported when the parser is built: that
+    imports rerun (about 0.3 s), which must happen inside ``main``'s handling of Ctrl-C."""
+    import_module("tracker.viewer.output").add_rerun_args(parser, **kwargs)
 
 
 def _command(name: str) -> Callable[[argparse.Namespace], int]:
@@ -38,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
             "steerable catheter from joint values and bi-plane images."
         ),
     )
-    parser.add_argument("--version", action="version", version=f"cathtrack {__version__}")
+    version = import_module("tracker").__version__  # importlib.metadata: 17 ms, inside main
+    parser.add_argument("--version", action="version", version=f"cathtrack {version}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     demo = sub.add_parser(
@@ -553,20 +566,56 @@ def _add_track(sub) -> None:
     p.set_defaults(run=_command("track"))
 
 
+class _FirstInterrupt:
+    """A SIGINT handler that raises KeyboardInterrupt once and ignores every later Ctrl-C, so
+    that a second one cannot cut short the closing of files after the first."""
+
+    def __init__(self) -> None:
+        self.seen = False
+
+    def __call__(self, signum, frame) -> None:
+        if not self.seen:
+            self.seen = True
+            raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if getattr(args, "run", None) is None:
-        parser.print_help()
-        return 0
+    """Run one command line; returns the exit code (0, 2 for an error a user can cause, 130
+    when interrupted).
+
+    Ctrl-C at any moment -- while the parser is built and the libraries load, during the
+    command, twice -- ends in one line on stderr and exit code 130: the first interrupts (a
+    command such as ``track`` may take it over to stop cleanly), later ones are ignored while
+    the command closes its files.
+    """
+    name = "cathtrack"
+    interrupts = _FirstInterrupt()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, interrupts)
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if getattr(args, "run", None) is None:
+            parser.print_help()
+            return 0
+        name = f"cathtrack {args.command}"
         return int(args.run(args) or 0)
     except (ValueError, OSError) as exc:
-        print(f"cathtrack {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     except KeyboardInterrupt:
-        print(f"cathtrack {args.command}: interrupted", file=sys.stderr)
-        return 130
+        interrupts.seen = True  # raised by a command's own handler: ignore the next ones too
+        if previous is not None:
+            # The process is about to exit: later Ctrl-Cs stay ignored until it has. SIG_IGN,
+            # not a Python handler: the interpreter's shutdown restores the default action of
+            # its own handlers, and a Ctrl-C then (rerun flushing at exit) would kill it.
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print(f"{name}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if previous is not None and not interrupts.seen:
+            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

@@ -1,15 +1,17 @@
 """``cathtrack demo``: the live loop end to end on an embedded simulated rig.
 
-A simulated controller streams the joint values of a session at 1 kHz as UDP datagrams over
-loopback; two simulated cameras (:mod:`~replay.simulation.render`, default rendering rig:
-640x480, f = 2500 px, 400 mm away) render the bi-plane images of the catheter at 20 fps,
-rendered one pair at a time just before its exposure time and stamped on the same monotonic
-clock as the joints. The live session (:class:`tracker.live.session.LiveSession`, the same
-wiring as ``cathtrack track``) receives the joints on a real socket, interpolates them to each
-image time, segments each pair (:class:`tracker.vision.pair.PairSegmenter`), reconstructs the
-markers, runs the UKF and sends every estimate back to the controller as a UDP datagram.
-The closed-form Tip Position estimator runs on the same observations for comparison.
-Everything goes to rerun (an ``.rrd`` file, and a viewer if asked for); at the end the
+A simulated controller, in a process of its own, streams the joint values of a session at
+1 kHz as UDP datagrams over loopback; two simulated cameras (:mod:`~replay.simulation.render`,
+default rendering rig: 640x480, f = 2500 px, 400 mm away) deliver the bi-plane images of the
+catheter at 20 fps: rendered ahead of time in another process
+(:class:`replay.simulation.sources.SimulatedCameras`), released at their exposure times and
+stamped on the same monotonic clock as the joints. The live session
+(:class:`tracker.live.session.LiveSession`, the same wiring as ``cathtrack track``) receives the
+joints on a real socket, interpolates them to each image time, segments the newest pair
+(:class:`tracker.vision.pair.PairSegmenter`), reconstructs the markers, runs the UKF and sends
+every estimate back to the controller as a UDP datagram. The closed-form Tip Position
+estimator runs on the same observations for comparison, in a thread of its own like every
+output. Everything goes to rerun (an ``.rrd`` file, and a viewer if asked for); at the end the
 accuracy of each method and the loop's latency are printed.
 
 The estimators never see the truth: it is known to the simulated cameras only and joins the
@@ -18,12 +20,15 @@ frames in the sinks that score and draw them.
 
 from __future__ import annotations
 
+import functools
 import math
+import multiprocessing
+import select
+import signal
 import socket
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,14 +38,13 @@ from models.catheter import default_catheter
 from models.rotations import wrap_angle
 from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import default_scene
-from replay.simulation.sources import session_joints, simulated_session
+from replay.simulation.sources import SimulatedCameras, session_joints, simulated_session
 from tracker.estimators import make_estimator
 from tracker.io.datagrams import DatagramError, decode_estimate
 from tracker.io.udp import LOOPBACK, JointStreamer
 from tracker.live.loop import LiveSummary
 from tracker.live.session import LiveSession, SessionSettings
-from tracker.live.sinks import LiveStatus
-from tracker.live.sources import ImageSet
+from tracker.live.sinks import LiveStatus, QueuedSink
 from tracker.types import Estimate
 from tracker.viewer.output import serve_until_interrupted
 from tracker.viewer.sink import RerunSink
@@ -101,139 +105,112 @@ class DemoSettings:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
-# ----------------------------------------------------------------------------- cameras
-class SimulatedCameras:
-    """Two cameras of the rendering rig, as a live source of :class:`ImageSet` items.
-
-    Pair ``k`` shows the catheter at the session's joints and true delta_L at ``t_k``; it is
-    rendered, then released at its exposure time ``start_s + t_k`` on the monotonic clock
-    (``start_s`` given to :meth:`start`) and stamped with it, as a camera with a hardware
-    time stamp would deliver it. The loop therefore measures latency from the exposure
-    (``time_is_monotonic``). Pairs that could not be rendered in time are released late,
-    still stamped with their exposure time, and counted in ``late`` (more than
-    ``late_after_s`` after their exposure).
-
-    Parameters
-    ----------
-    renderer : replay.simulation.render.Renderer
-    frames : sequence of Frame
-        The session's frames (their joints and truth; their segmented points are ignored).
-    seed : int
-        Seeds the sensor noise.
-    late_after_s : float
-        A pair released later than this after its exposure counts as late, s.
-    """
-
-    time_is_monotonic = True
-
-    def __init__(
-        self,
-        renderer: Renderer,
-        frames: Sequence,
-        seed: int = 0,
-        late_after_s: float = 0.025,
-    ) -> None:
-        self.renderer = renderer
-        self.frames = frames
-        self.start_s: float | None = None
-        self.seed = seed
-        self.late_after_s = float(late_after_s)
-        self.late = 0
-        self._truth: dict[float, float] = {}
-
-    def start(self, start_s: float) -> SimulatedCameras:
-        """Set the monotonic time of the session's time 0 (before iterating)."""
-        self.start_s = float(start_s)
-        return self
-
-    def truth(self, time_s: float) -> float | None:
-        """True delta_L (rad) of the pair stamped ``time_s``."""
-        return self._truth.get(float(time_s))
-
-    def __iter__(self) -> Iterator[ImageSet]:
-        if self.start_s is None:
-            raise RuntimeError("SimulatedCameras.start(start_s) was not called")
-        rng = np.random.default_rng(self.seed)
-        for frame in self.frames:
-            images = self.renderer.render(frame.q, frame.delta_L_true_rad, rng).images
-            exposure_s = self.start_s + float(frame.time_s)
-            wait = exposure_s - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
-            elif -wait > self.late_after_s:
-                self.late += 1
-            self._truth[exposure_s] = float(frame.delta_L_true_rad)
-            yield ImageSet(exposure_s, tuple(images))
-
-
 # -------------------------------------------------------------------------- controller
+def _controller(conn, joints_at: Callable, rate_hz: float) -> None:
+    """The simulated controller's process: joints out at ``rate_hz``, estimates in, counted.
+
+    Speaks over ``conn``: sends its estimate address; takes ``("start", joints_to,
+    start_s)`` and then ``("stop", expected, timeout_s)``, after which it waits up to
+    ``timeout_s`` for ``expected`` estimates and answers with its counts.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
+    counts = {"received": 0, "valid": 0, "malformed": 0, "sent": 0}
+    streamer = None
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        sock.bind((LOOPBACK, 0))
+        conn.send(sock.getsockname())
+        expected, deadline = None, math.inf
+        while expected is None or (counts["received"] < expected and time.monotonic() < deadline):
+            timeout = 0.5 if expected is None else max(0.0, deadline - time.monotonic())
+            ready, _, _ = select.select([sock, conn], [], [], timeout)
+            if sock in ready:
+                try:
+                    message = decode_estimate(sock.recv(256))
+                    counts["received"] += 1
+                    counts["valid"] += int(message.valid)
+                except DatagramError:
+                    counts["malformed"] += 1
+            if conn in ready:
+                try:
+                    command = conn.recv()
+                except EOFError:  # the demo has gone
+                    break
+                if command[0] == "start":
+                    streamer = JointStreamer(command[1], joints_at, rate_hz, start_s=command[2])
+                    streamer.start()
+                else:
+                    if streamer is not None:
+                        streamer.stop()
+                        counts["sent"] = streamer.sent
+                    expected = command[1] if command[1] is not None else 0
+                    deadline = time.monotonic() + command[2]
+        if streamer is not None and expected is None:
+            streamer.stop()
+    try:
+        conn.send(counts)
+    except OSError:
+        pass
+
+
 class SimulatedController:
-    """The robot controller's side: joints out at 1 kHz, estimate datagrams in.
+    """The robot controller's side, in its own process: joints out at 1 kHz, estimates in.
 
     Its estimate socket (loopback, a port the OS picks: :attr:`estimate_address`) is open from
-    the start and counts the estimates in a thread; :meth:`start` then streams the joint
-    datagrams from a :class:`tracker.io.udp.JointStreamer` thread.
+    the start and counts the estimate datagrams; :meth:`start` then streams the joint
+    datagrams (:class:`tracker.io.udp.JointStreamer`). A process of its own, as a real
+    controller is another machine: its 1 kHz never competes with the loop for the
+    interpreter.
 
     Parameters
     ----------
     joints_at : callable
-        Seconds since ``start_s`` -> (q, q_dot).
+        Seconds since ``start_s`` -> (q, q_dot); a module-level function (it is sent to the
+        process).
     rate_hz : float
     """
 
     def __init__(
         self, joints_at: Callable[[float], tuple[Array, Array]], rate_hz: float
     ) -> None:
-        self.joints_at = joints_at
         self.rate_hz = float(rate_hz)
-        self.streamer: JointStreamer | None = None
-        self.received = 0
-        self.valid = 0
-        self.malformed = 0
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind((LOOPBACK, 0))
-        self._sock.settimeout(0.05)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._receive, name="controller", daemon=True)
-
-    @property
-    def estimate_address(self) -> tuple[str, int]:
-        return self._sock.getsockname()
+        self.received = self.valid = self.malformed = self.sent = 0
+        context = multiprocessing.get_context("spawn")  # no fork of a threaded process
+        self._conn, child = context.Pipe()
+        self._process = context.Process(
+            target=_controller, args=(child, joints_at, self.rate_hz), name="controller",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        if not self._conn.poll(120.0):
+            self._process.terminate()
+            raise RuntimeError("the simulated controller did not start")
+        self.estimate_address: tuple[str, int] = tuple(self._conn.recv())
+        self._stopped = False
 
     def start(self, joints_to: tuple[str, int], start_s: float) -> SimulatedController:
         """Stream joint sample ``k`` at ``start_s + k / rate_hz`` (monotonic) to ``joints_to``."""
-        self.streamer = JointStreamer(joints_to, self.joints_at, self.rate_hz, start_s=start_s)
-        self.streamer.start()
-        self._thread.start()
+        self._conn.send(("start", tuple(joints_to), float(start_s)))
         return self
-
-    def _receive(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self._sock.recv(256)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            try:
-                message = decode_estimate(data)
-            except DatagramError:
-                self.malformed += 1
-                continue
-            self.received += 1
-            self.valid += int(message.valid)
 
     def stop(self, expected: int | None = None, timeout_s: float = 1.0) -> None:
         """Stop streaming joints; wait (up to ``timeout_s``) for ``expected`` estimates."""
-        if self.streamer is not None:
-            self.streamer.stop()
-        deadline = time.monotonic() + timeout_s
-        while expected is not None and self.received < expected and time.monotonic() < deadline:
-            time.sleep(0.01)
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(1.0)
-        self._sock.close()
+        if self._stopped:
+            return
+        self._stopped = True
+        try:
+            self._conn.send(("stop", expected, float(timeout_s)))
+            if self._conn.poll(timeout_s + 5.0):
+                counts = self._conn.recv()
+                self.received, self.valid = counts["received"], counts["valid"]
+                self.malformed, self.sent = counts["malformed"], counts["sent"]
+        except (OSError, EOFError):
+            pass
+        self._process.join(2.0)
+        if self._process.is_alive():
+            self._process.terminate()
+        self._conn.close()
 
 
 # ------------------------------------------------------------------------------ sinks
@@ -275,7 +252,9 @@ class ScoreSink:
     """Scores the loop's estimator and runs the comparison estimators (a live-loop sink).
 
     Each comparison estimator steps on the loop's observation of the frame, so all methods
-    see exactly the same reconstructed markers; their estimates go to the viewer too.
+    see exactly the same reconstructed markers; their estimates go to the viewer too, logged
+    in the viewer's own thread (rerun's time is per thread). The demo runs this sink behind a
+    :class:`~tracker.live.sinks.QueuedSink` that keeps every frame.
 
     Parameters
     ----------
@@ -285,14 +264,23 @@ class ScoreSink:
     truth : callable
         Image time -> true delta_L (rad) or None.
     viewer : RerunSink, optional
+    viewer_thread : QueuedSink, optional
+        The viewer's sink thread (:attr:`LiveSession.viewer_thread`): the comparison
+        estimates are logged there; without it, here.
     """
 
     name = "score"
 
     def __init__(
-        self, method: str, others: dict, truth: Callable, viewer: RerunSink | None = None
+        self,
+        method: str,
+        others: dict,
+        truth: Callable,
+        viewer: RerunSink | None = None,
+        viewer_thread: QueuedSink | None = None,
     ) -> None:
-        self.truth, self.others, self.viewer = truth, others, viewer
+        self.truth, self.others = truth, others
+        self.viewer, self.viewer_thread = viewer, viewer_thread
         self.scores = {name: MethodScore(name) for name in (method, *others)}
         self.method = method
 
@@ -302,8 +290,13 @@ class ScoreSink:
         for name, estimator in self.others.items():
             other = estimator.step(observation)
             self.scores[name].add(other, truth)
-            if self.viewer is not None:
-                self.viewer.log_estimate(name, other, truth)
+            if self.viewer is None:
+                continue
+            log = functools.partial(self.viewer.log_estimate, name, other, truth)
+            if self.viewer_thread is not None:
+                self.viewer_thread.submit(log)
+            else:
+                log()
 
     def close(self) -> None:
         """Nothing to release: the viewer sink this one writes through is closed on its own."""
@@ -320,8 +313,9 @@ def header_line(settings: DemoSettings) -> str:
     return (
         f"cathtrack demo: {settings.seconds:g} s simulated session in real time, {frames}"
         f" bi-plane image pairs (640x480, f = 2500 px) at {settings.frame_rate_hz:g} fps"
-        f" rendered and segmented live, joints at {settings.joint_rate_hz:g} Hz over loopback"
-        f" UDP, torsion wind-up 120 deg with 60 deg of play, seed {settings.seed}"
+        f" rendered ahead in a process of their own and segmented live, joints at"
+        f" {settings.joint_rate_hz:g} Hz over loopback UDP from a controller process, torsion"
+        f" wind-up 120 deg with 60 deg of play, seed {settings.seed}"
     )
 
 
@@ -351,18 +345,19 @@ def report_lines(
         )
     lat, cyc = summary.latency_ms, summary.cycle_ms
     joints = summary.joints
-    dropped = summary.frames_dropped
-    predict_only = summary.frames_stale_joints + summary.frames_no_joints
     lines += [
         "",
         "| live loop | |",
         "|---|---:|",
-        f"| frames processed / dropped / predict-only | {summary.frames_processed} / {dropped}"
-        f" / {predict_only} |",
+        f"| frames processed / dropped / predict-only | {summary.frames_processed} /"
+        f" {summary.frames_dropped} / {summary.frames_without_joints} |",
+        f"| pairs dropped for a newer one (loop busy) | {summary.frames_superseded} |",
         f"| latency image -> estimate sent, p50 / p99 (ms) | {_ms(lat.get('p50', math.nan))} /"
         f" {_ms(lat.get('p99', math.nan))} |",
-        f"| latency image -> all sinks done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
+        f"| latency image -> loop done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
         f" / {_ms(cyc.get('p99', math.nan))} |",
+        f"| estimates per second | {summary.frames_processed / max(settings.seconds, 1e-9):.1f}"
+        " |",
     ]
     if joints is not None:
         lines.append(f"| joint datagrams received / used | {joints.received} / {joints.accepted} |")
@@ -370,8 +365,10 @@ def report_lines(
         f"| estimates received by the controller | {controller.received} of {estimates_sent}"
         f" sent ({controller.valid} valid) |",
     ]
-    if late_frames:
-        lines.append(f"| image pairs rendered too late for real time | {late_frames} |")
+    for name in sorted(set(summary.sink_dropped) | set(summary.sink_stalls)):
+        dropped, stalls = summary.sink_dropped.get(name, 0), summary.sink_stalls.get(name, 0)
+        lines.append(f"| {name}: frames dropped / waits (behind) | {dropped} / {stalls} |")
+    lines.append(f"| image pairs rendered too late for real time | {late_frames} |")
     if rrd_path is not None:
         size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan
         lines.append(f"| rerun recording | {rrd_path} ({size:.1f} MB) |")
@@ -427,25 +424,29 @@ def run_demo(
     )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
     others = {name: make_estimator(name, catheter) for name in compare}
+    # The cameras and the controller are processes of their own, started first: they come
+    # up while the session is set up.
     cameras = SimulatedCameras(
         renderer, session.frames, settings.seed, 0.5 / settings.frame_rate_hz
     )
-    controller = SimulatedController(session_joints, settings.joint_rate_hz)
-    # The loop's joint receiver and the controller's estimate socket: loopback, ports the OS
-    # picks. With --serve the rerun stream stays open after the run, for web viewers to look.
-    live_settings = SessionSettings(
-        estimator=settings.estimator,
-        bind=LOOPBACK,
-        joints_port=0,
-        joint_clock="sender",
-        estimate_to=controller.estimate_address,
-        images=settings.images,
-        image_every=settings.image_every,
-        jpeg_quality=settings.jpeg_quality,
-        application_id="cathtrack-demo",
-        keep_serving=True,
-    )
+    controller = None
+    summary = None
     try:
+        controller = SimulatedController(session_joints, settings.joint_rate_hz)
+        # The loop's joint receiver and the controller's estimate socket: loopback, ports the
+        # OS picks. With --serve the rerun stream stays open after the run, for web viewers.
+        live_settings = SessionSettings(
+            estimator=settings.estimator,
+            bind=LOOPBACK,
+            joints_port=0,
+            joint_clock="sender",
+            estimate_to=controller.estimate_address,
+            images=settings.images,
+            image_every=settings.image_every,
+            jpeg_quality=settings.jpeg_quality,
+            application_id="cathtrack-demo",
+            keep_serving=True,
+        )
         with LiveSession(
             live_settings,
             scene,
@@ -455,11 +456,23 @@ def run_demo(
             truth=cameras.truth,
             report=report,
         ) as live:
-            scorer = ScoreSink(settings.estimator, others, cameras.truth, live.viewer)
-            live.tracker.add_sink(scorer)
+            scorer = ScoreSink(
+                settings.estimator, others, cameras.truth, live.viewer, live.viewer_thread
+            )
+            # Every frame scored; closed before the viewer, whose thread logs its estimates.
+            live.tracker.add_sink(
+                QueuedSink(scorer, 1 << 16, keep_all=True, report=report),
+                before=live.viewer_thread,
+            )
             out(header_line(settings))
             if live.output is not None:
                 out(f"cathtrack demo: rerun to {'; '.join(live.output.targets)}")
+            ready = cameras.render_ahead(settings.frame_rate_hz)
+            if ready < len(session.frames):
+                out(
+                    f"cathtrack demo: {ready} pairs rendered ahead ({cameras.render_ms:.0f} ms"
+                    " a pair)"
+                )
             start_s = time.monotonic() + settings.start_delay_s
             cameras.start(start_s)
             controller.start(live.joints.address, start_s)
@@ -482,6 +495,11 @@ def run_demo(
                 out(line)
             if output is not None and output.served_url is not None and not summary.interrupted:
                 serve_until_interrupted(output, out)
+    except KeyboardInterrupt:  # Ctrl-C before the loop took it over
+        out("cathtrack demo: interrupted")
+        return 130
     finally:
-        controller.stop()
+        if controller is not None:
+            controller.stop()
+        cameras.close()
     return 130 if summary.interrupted else 0

@@ -496,6 +496,7 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
         RenderSettings(noise_sigma_gray=cfg.noise_level),
         seed=s.seed,
         nuisance=s.image_nuisance,
+        nuisance_seed=(s.seed, 15, cfg.index),
     )
     segmenter = PairSegmenter(
         catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds

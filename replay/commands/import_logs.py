@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     if logs.unit == "px":
         rig = rig_from_dict(data, args.rig, "pinhole")
     else:
-        rig = orthographic_rig(rig_from_dict(data, args.rig, written_model(data)))
+        rig = orthographic_rig(rig_from_dict(data, args.rig, written_model(data, args.rig)))
     summary = write_lab_recording(
         args.out,
         logs,

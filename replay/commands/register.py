@@ -57,7 +57,7 @@ def registered_rig_toml(data: dict, source: str, pose: Pose, comment: str, extra
     """The rig file ``data`` with ``[base]`` set to ``pose``: its views as written, every other
     table and key kept (rig_toml writes the views' own keys with the values read from them),
     ``extra`` tables added."""
-    rig = rig_from_dict(data, source, written_model(data))
+    rig = rig_from_dict(data, source, written_model(data, source))
     kept = {name: table for name, table in data.items() if isinstance(table, dict)}
     kept.pop("base", None)
     return rig_toml(rig, pose, comment, {**kept, **extra})

@@ -197,6 +197,8 @@ def run(args: argparse.Namespace) -> int:
         if kind == "recording":
             recording = open_recording(args.recording)
             stack.callback(recording.close)
+            for warning in recording.report.warnings:  # what was lost, as evaluate reports it
+                _track_report(f"{args.recording}: warning: {warning}")
         scene, model_toml = _scene(args, recording)
         segmenter = _segmenter(args, scene) if kind in ("video", "camera") else None
         session = LiveSession(

@@ -2,7 +2,9 @@
 
 :func:`evaluate_batch` runs :func:`~replay.evaluation.outputs.evaluate_recording` on every
 recording, each into its own folder, and :func:`write_batch` sums them up in ``batch.md`` and
-``batch.csv``; a recording that cannot be read is reported there, the others are evaluated.
+``batch.csv``; a recording that cannot be read is reported there, the others are evaluated,
+and what the reader found in a damaged one (the parts lost, by kind and span) is listed
+there too.
 """
 
 from __future__ import annotations
@@ -32,10 +34,13 @@ class BatchItem:
 
 
 def _batch_task(path: str, out_dir: str | None, options: dict) -> BatchItem:
+    """Evaluate one recording; the errors a bad input can cause (a
+    :class:`~tracker.io.recording.RecordingError` or another ValueError naming the file, an
+    OSError) become the item's error. Anything else is a bug, and stops the batch."""
     try:
         result = evaluate_recording(path, out_dir, **options)
     except (ValueError, OSError) as exc:
-        return BatchItem(path, out_dir, error=str(exc))
+        return BatchItem(path, out_dir, error=str(exc) or type(exc).__name__)
     return BatchItem(
         path,
         out_dir,
@@ -56,7 +61,8 @@ def evaluate_batch(
     """Evaluate many recordings, each into ``out_dir/<name>/``, on a local process pool
     (``workers``, default all CPUs) or a Dask cluster (``scheduler`` address); writes
     ``out_dir/batch.md`` and ``out_dir/batch.csv``. A recording that cannot be read is
-    reported in the batch table, the others are evaluated."""
+    reported in the batch table, the others are evaluated; should the batch stop on an
+    unexpected error, the tables still sum up the recordings done before it is raised."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = _unique_names([Path(p) for p in paths])
@@ -102,8 +108,8 @@ def evaluate_batch(
                     bar.update()
     finally:
         bar.close()
-    done = [item for item in items if item is not None]
-    write_batch(done, out)
+        done = [item for item in items if item is not None]
+        write_batch(done, out)
     return done
 
 
@@ -155,6 +161,11 @@ def write_batch(items: Sequence[BatchItem], out: Path) -> list[Path]:
         held = sum(c.holds is True for c in item.checks)
         checked = sum(c.holds is not None for c in item.checks)
         lines.append(f"| {item.path} | " + " | ".join(cells) + f" | {held}/{checked} hold |")
+    warned = [item for item in items if item.warnings]
+    if warned:
+        lines += ["", "## Read reports (what the reader skipped or lost)", ""]
+        for item in warned:
+            lines += [f"- {item.path}:"] + [f"  - {w}" for w in item.warnings]
     md_path = out / "batch.md"
     md_path.write_text("\n".join(lines) + "\n")
     return [md_path, csv_path]

@@ -534,6 +534,10 @@ class Renderer:
     nuisance : ImagingNuisance
         How each frame differs from the backgrounds (none by default). The gain drift is the
         renderer's only state: it moves on with every :meth:`render`.
+    nuisance_seed : int or sequence of int, optional
+        Draw the nuisances from a generator of their own, seeded with this, so that a frame's
+        sensor noise is the same with and without them; by default they come from the
+        generator given to :meth:`render`.
     """
 
     def __init__(
@@ -545,6 +549,7 @@ class Renderer:
         settings: RenderSettings = RenderSettings(),
         seed: int = 0,
         nuisance: ImagingNuisance = ImagingNuisance(),
+        nuisance_seed: int | Sequence[int] | None = None,
     ) -> None:
         if rig.kind != "pinhole":
             raise ValueError("the renderer needs pinhole views (use far_view for orthographic)")
@@ -560,6 +565,7 @@ class Renderer:
         )
         self.backgrounds = tuple(quantise(bg) for bg in self.background_float)
         self.nuisance = nuisance
+        self._nuisance_rng = None if nuisance_seed is None else np.random.default_rng(nuisance_seed)
         self._drift: list[float | None] = [None] * len(self.views)
 
     def pose(self, q: Array, delta_L_rad: float) -> CatheterPose:
@@ -590,8 +596,9 @@ class Renderer:
         ):
             change = NO_CHANGE
             if self.nuisance.active:
-                self._drift[k] = self.nuisance.drift_step(self._drift[k], rng)
-                change = self.nuisance.draw(self._drift[k], rng)
+                draws = rng if self._nuisance_rng is None else self._nuisance_rng
+                self._drift[k] = self.nuisance.drift_step(self._drift[k], draws)
+                change = self.nuisance.draw(self._drift[k], draws)
             images.append(
                 render_view(view, self.catheter, pose, bg, rng, self.settings, occ, change)
             )

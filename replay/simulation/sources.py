@@ -1,8 +1,20 @@
-"""Simulated frame sources for the live loop: the demo's session, as frames or rendered images."""
+"""Simulated frame sources for the live loop: the demo's session, as frames or rendered images.
+
+- :class:`SimulatedSource`: the frames of a simulated session (optionally paced);
+- :class:`RenderedSource`: their images rendered one after the other in this process (tests);
+- :class:`SimulatedCameras`: cameras that behave like cameras: the images are rendered ahead of
+  time in a separate process and released at their exposure times (the demo).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import math
+import multiprocessing
+import queue
+import signal
+import threading
+import time
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +35,7 @@ from tracker.live.sources import ImageSet, PacedSource
 from tracker.types import Frame
 
 Array = np.ndarray
+
 
 # -------------------------------------------------------------------------------- simulation
 @dataclass(frozen=True)
@@ -135,3 +148,175 @@ class RenderedSource(PacedSource):
 
         super().__init__(pairs(), speed, **kwargs)
 
+
+# ------------------------------------------------------------------------ simulated cameras
+def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max_ahead, stop):
+    """The render process: every pair in order, at most ``max_ahead`` ahead of the release.
+
+    ``progress`` holds (pairs rendered, seconds spent rendering), ``released`` the number of
+    pairs the cameras have released; a failure goes to ``pairs`` as its message.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
+    pairs.cancel_join_thread()  # exit without waiting for a reader that stopped reading
+    try:
+        rng = np.random.default_rng(seed)
+        for k in range(len(q)):
+            while k - released.value >= max_ahead:
+                if stop.wait(0.005):
+                    return
+            if stop.is_set():
+                return
+            started = time.perf_counter()
+            images = renderer.render(q[k], delta_L_rad[k], rng).images
+            pairs.put((k, tuple(images)))
+            with progress.get_lock():
+                progress[0] += 1
+                progress[1] += time.perf_counter() - started
+    except Exception as exc:  # handed to the cameras, which raise it in the loop's thread
+        pairs.put((-1, f"{type(exc).__name__}: {exc}"))
+
+
+class SimulatedCameras:
+    """Simulated triggered cameras: a live source of :class:`ImageSet` at exposure times.
+
+    Pair ``k`` shows the catheter at the frames' joints and true delta_L at ``t_k``. The pairs
+    are rendered in a separate process, in order and ahead of time (at most ``max_ahead``
+    pairs ahead), so that rendering never takes the loop's interpreter; pair ``k`` is then
+    released at its exposure time ``start_s + t_k`` on the monotonic clock (``start_s`` given
+    to :meth:`start`) and stamped with it, as a camera with a hardware time stamp would
+    deliver it. The source is ``live``: the loop captures it in its own thread and takes the
+    newest pair. :meth:`render_ahead` waits, before the session starts, until the renderer is
+    far enough ahead to stay ahead for the whole session at the pace it renders; a pair that
+    still comes from the renderer after its exposure time is released late, stamped with its
+    exposure time, and counted in ``late`` (more than ``late_after_s`` after the exposure).
+
+    Parameters
+    ----------
+    renderer : replay.simulation.render.Renderer
+    frames : sequence of Frame
+        The session's frames (their joints, truth and times; their points are ignored).
+    seed : int
+        Seeds the sensor noise.
+    late_after_s : float
+        A pair released later than this after its exposure counts as late, s.
+    max_ahead : int
+        Pairs rendered and not yet released, at most (about 0.6 MB each).
+    """
+
+    time_is_monotonic = True
+    live = True
+
+    def __init__(
+        self,
+        renderer,
+        frames: Sequence[Frame],
+        seed: int = 0,
+        late_after_s: float = 0.025,
+        max_ahead: int = 200,
+    ) -> None:
+        self.times_s = np.array([float(f.time_s) for f in frames])
+        self.truth_rad = np.array([float(f.delta_L_true_rad) for f in frames])
+        self.late_after_s = float(late_after_s)
+        self.max_ahead = int(max_ahead)
+        self.start_s: float | None = None
+        self.late = 0
+        self.released = 0
+        self._truth: dict[float, float] = {}
+        self._stop = threading.Event()
+        context = multiprocessing.get_context("spawn")  # no fork of a threaded process
+        self._pairs = context.Queue()
+        self._progress = context.Array("d", 2)
+        self._released = context.Value("l", 0)
+        self._stop_render = context.Event()
+        q = np.array([f.q for f in frames], dtype=float)
+        self._process = context.Process(
+            target=_render_ahead,
+            args=(
+                renderer, q, self.truth_rad, seed, self._pairs, self._progress,
+                self._released, self.max_ahead, self._stop_render,
+            ),
+            name="simulated-cameras",
+            daemon=True,
+        )  # fmt: skip
+        self._process.start()
+
+    @property
+    def rendered(self) -> int:
+        """Pairs rendered so far."""
+        return int(self._progress[0])
+
+    @property
+    def render_ms(self) -> float:
+        """Mean time to render a pair so far, ms (NaN before the first)."""
+        n, spent_s = self._progress[0], self._progress[1]
+        return 1e3 * spent_s / n if n else math.nan
+
+    def render_ahead(self, frame_rate_hz: float, timeout_s: float = 120.0) -> int:
+        """Wait until the renderer is far enough ahead to stay ahead of the session.
+
+        At a render rate below the frame rate, the pairs still to render outrun the session
+        unless a share ``1 - rate / frame_rate`` of them is ready first (plus a margin of a
+        few pairs); capped at ``max_ahead``. Returns the pairs ready.
+        """
+        total = self.times_s.size
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self._process.is_alive():
+            n = self.rendered
+            if n >= min(total, 4):
+                rate_hz = 1e3 / self.render_ms
+                lead = total * max(0.0, 1.0 - rate_hz / frame_rate_hz) + 4
+                if n >= min(total, self.max_ahead, math.ceil(lead)):
+                    return n
+            time.sleep(0.01)
+        return self.rendered
+
+    def start(self, start_s: float) -> SimulatedCameras:
+        """Set the monotonic time of the session's time 0 (before iterating)."""
+        self.start_s = float(start_s)
+        self._truth = {
+            self.start_s + float(t): float(truth)
+            for t, truth in zip(self.times_s, self.truth_rad, strict=True)
+        }
+        return self
+
+    def truth(self, time_s: float) -> float | None:
+        """True delta_L (rad) of the pair stamped ``time_s``."""
+        return self._truth.get(float(time_s))
+
+    def __iter__(self) -> Iterator[ImageSet]:
+        if self.start_s is None:
+            raise RuntimeError("SimulatedCameras.start(start_s) was not called")
+        for k, t in enumerate(self.times_s):
+            images = None
+            while images is None:
+                if self._stop.is_set():
+                    return
+                try:
+                    index, images = self._pairs.get(timeout=0.05)
+                except queue.Empty:
+                    if not self._process.is_alive():
+                        raise RuntimeError("the simulated cameras' renderer stopped") from None
+                    continue
+                if index < 0:
+                    raise RuntimeError(f"the simulated cameras' renderer failed: {images}")
+            exposure_s = self.start_s + float(t)
+            wait = exposure_s - time.monotonic()
+            if wait > 0:
+                if self._stop.wait(wait):
+                    return
+            elif -wait > self.late_after_s:
+                self.late += 1
+            self.released = k + 1
+            self._released.value = k + 1
+            yield ImageSet(exposure_s, images)
+
+    def close(self) -> None:
+        """Stop releasing and rendering; end the render process."""
+        self._stop.set()
+        self._stop_render.set()
+        self._process.join(2.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(1.0)
+        self._pairs.close()
+        self._pairs.cancel_join_thread()

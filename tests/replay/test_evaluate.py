@@ -365,7 +365,7 @@ def test_rerun_sink_logs_frames_and_estimates_for_the_live_loop(tmp_path):
     for entity in (
         "/series/delta_L/ukf",
         "/series/error/ukf",
-        "/series/delta_L/truth",
+        "/series/delta_L/_truth",
         "/world/catheter/estimate",
         "/world/catheter/truth",
         "/world/cameras/front/segmented",

@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 
 from models.catheter import default_catheter
+from replay import evaluation
+from replay.protocol import ProtocolSettings, simulate_protocol
 from models.imaging import PinholeView
 from replay.simulation.render import (
     CatheterPose,
@@ -206,3 +208,27 @@ def test_nuisances_are_drawn_per_view_and_frame_and_leave_the_plain_renderer_alo
 def test_bad_nuisances_are_clear_errors(options, match):
     with pytest.raises(ValueError, match=match):
         ImagingNuisance(**options)
+
+
+def test_a_recording_with_the_nuisances_replays_as_accurately(tmp_path):
+    """The same simulated recording with images (3 planes, 6 configurations) with and
+    without a gain of 0.85 to 1.15, an offset of +/-15 gray levels and a gamma of 0.9 to 1.1
+    on every frame (the nuisances drawn apart from the sensor noise, which is the same in
+    both): replayed from its images, the UKF's RMS error stays within 1.2 times."""
+    rms = {}
+    for name, nuisance in (
+        ("plain", ImagingNuisance()),
+        ("nuisances", ImagingNuisance(gain_flicker=0.15, offset_gray=15.0, gamma_range=0.1)),
+    ):
+        settings = ProtocolSettings(
+            planes=3, configurations=6, frames_per_configuration=15, seed=1,
+            image_nuisance=nuisance,
+        )
+        path = tmp_path / f"{name}.mcap"
+        simulate_protocol(settings, path, workers=1, progress=False)
+        result = evaluation.evaluate_recording(
+            path, None, methods=["ukf"], source="images", rrd=False, figures=False
+        )
+        rows = {row["method"]: row for row in result.tables["overall"]}
+        rms[name] = rows["ukf"]["rms_deg"]
+    assert rms["nuisances"] <= 1.2 * rms["plain"], rms

@@ -98,7 +98,7 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
         "/world/cameras/side/reprojected",
         "/series/delta_L/ukf",
         "/series/delta_L/ukf_plus2sigma",
-        "/series/delta_L/truth",
+        "/series/delta_L/_truth",
         "/series/error/ukf",
         "/series/nis/ukf",
         "/series/latency_ms/estimate",

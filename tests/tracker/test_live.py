@@ -233,7 +233,11 @@ def test_real_time_controller_at_1khz_and_ukf(noisy_session):
 # ------------------------------------------------------------------------------ faults
 def test_a_joint_stream_that_stops_flags_frames_and_predicts_only(noisy_session, controller):
     session = noisy_session
-    with JointReceiver(port=0, clock="sender", stale_after_s=0.1) as joints:
+    # The receiver's clock is the simulated controller's: its 2 s pause is 2 s for it too.
+    simulated_now = lambda: controller.next_sample / JOINT_RATE_HZ  # noqa: E731
+    with JointReceiver(
+        port=0, clock="sender", stale_after_s=0.1, monotonic=simulated_now
+    ) as joints:
         memory = MemorySink()
         summary = run_live(
             controlled(session.frames, controller, joints, faults=False, stop_s=3.0, resume_s=5.0),
@@ -256,11 +260,23 @@ def test_a_joint_stream_that_stops_flags_frames_and_predicts_only(noisy_session,
         if flagged:
             assert result.observation.tip_b_mm is None  # the estimator saw no measurement
             assert Flag.NO_MEASUREMENT in result.estimate.flags
-            assert Flag.HELD in result.estimate.flags and result.estimate.valid
+            assert not result.estimate.valid  # held by the UKF, but not for the controller
+    # Frames past the newest sample by more than the hold (20 ms), not yet stale: flagged
+    # extrapolated, predict only too.
+    expected_held = (times - newest_joint_s > 0.02) & ~expected_stale & (times < 5.0)
+    held = [bool(r.status & LiveStatus.JOINTS_EXTRAPOLATED) for r in memory.results]
+    np.testing.assert_array_equal(held, expected_held)
+    assert summary.frames_extrapolated_joints == expected_held.sum() == 2
+    invalid = expected_stale | expected_held
+    assert summary.frames_valid == len(session.frames) - invalid.sum()
     messages = controller.estimates
+    # The stream goes on through the pause: every frame has its datagram, flagged and with
+    # the valid bit clear while the joints are missing.
+    assert [m.sequence for m in messages] == list(range(len(session.frames)))
     np.testing.assert_array_equal(
         [bool(m.status & LiveStatus.STALE_JOINTS) for m in messages], expected_stale
     )
+    np.testing.assert_array_equal([m.valid for m in messages], ~invalid)
     # Tracking resumes with the joints.
     after = [r for r in memory.results if r.frame.time_s >= 5.0]
     assert after and all(Flag.NO_MEASUREMENT not in r.estimate.flags for r in after)

@@ -27,9 +27,10 @@ from replay.simulation.robustness import CONDITIONS, run_condition
 from tracker.estimators import make_estimator
 from tracker.reconstruction import Reconstructor
 from tracker.vision.background import CameraSegmenter
+from tracker.vision.detection import search_box
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.photometry import fit_photometry
-from tracker.vision.segmentation import SegmentationFlag, Segmenter, frame_points, search_box
+from tracker.vision.segmentation import SegmentationFlag, Segmenter, frame_points
 from tracker.vision.settings import (
     SegmentationSettings,
     check_image,
@@ -435,7 +436,9 @@ def test_background_follows_a_slow_change_without_burning_in_the_catheter(scene)
     cv2.circle(shadow, (int(spot[1]), int(spot[0])), 130, 1, -1)
     shade = cv2.GaussianBlur(shadow.astype(np.float32), (0, 0), 10.0)
     # Faster than the defaults, for a short test: each row every other frame, at half weight.
-    fast = dataclasses.replace(SegmentationSettings(), background_rate=0.5, background_stripes=2)
+    fast = dataclasses.replace(
+        SegmentationSettings(), background_rate=0.5, background_stripes=2, background_every=1
+    )
     cameras = {
         freeze: CameraSegmenter(
             Segmenter(catheter, dataclasses.replace(fast, freeze_background=freeze)),

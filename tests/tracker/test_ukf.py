@@ -2,7 +2,10 @@
 
 Measurement noise is simulated directly in {B} as Gaussian with covariance
 ``sigma^2 diag(1, 1, 0.5)`` (a reconstruction from two views is less noisy along z_b). All
-Monte Carlo tests use fixed seeds and trial counts, so they are deterministic.
+Monte Carlo tests use fixed seeds and trial counts, so they are deterministic. Tests of the
+filter's Gaussian machinery use ``EXACT``: the model exact (no deviation state, no model
+error) and no heavy tail; the others use the default, robust settings. Sessions with
+everything a lab meets are in tests/replay/test_robustness.py.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.stats import chi2
 
 from models.bounds import crb_markers
@@ -18,19 +22,15 @@ from models.catheter import default_catheter
 from models.imaging import default_orthographic_rig, default_pinhole_rig
 from models.rotations import rot_y, rot_z, rotate_z, wrap_angle
 from tracker.estimators import make_estimator
-from tracker.estimators.ukf import (
-    BendingPlaneUKF,
-    UKFSettings,
-    gate_threshold,
-    sigma_sqrt,
-    spd_inverse,
-)
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings, sigma_sqrt, spd_inverse
 from tracker.types import Flag, Observation, ViewMeasurement
 
 DELTA_2 = [0.0, np.pi / 2]
 BENT = np.array([0.3, 0.8, 0.6])
 NOISE_SHAPE = np.diag([1.0, 1.0, 0.5])
 DT_S = 0.05
+EXACT = dict(joint_error_mm=0.0, gain_error=0.0, joint_error_white_mm=0.0, outlier_probability=0.0)
+QUIET = UKFSettings(process_noise_rad2_s=0.0, rotation_noise_gain_rad=0.0, **EXACT)
 
 
 def noise_cov(sigma_mm: float) -> np.ndarray:
@@ -83,38 +83,138 @@ def simulate(
     return frames
 
 
-def combined_crb(catheter, q, delta_L, cov):
-    """Bound of the tip and the markers fused as independent measurements, rad."""
-    return float(crb_markers(catheter, q, delta_L, cov))
-
-
 def run(ukf, frames):
     ukf.reset()
     return [ukf.step(frame) for frame in frames]
 
 
-QUIET = UKFSettings(process_noise_rad2_s=0.0, rotation_noise_gain_rad=0.0)
+# ---------------------------------------------------------------------------- identities
+def test_one_step_equals_filterpys_predict_and_update():
+    """With the model exact and no heavy tail, a step of the filter (a bank of one) is
+    filterpy's UnscentedKalmanFilter predict and update with the same sigma points, process
+    noise and wrapped angles: the step-by-step reference of the rules' implementation."""
+    catheter = default_catheter()
+    settings = UKFSettings(process_noise_rad2_s=0.04, **EXACT)
+    ukf = BendingPlaneUKF(catheter, settings)
+    rng = np.random.default_rng(30)
+    frames = simulate(catheter, np.broadcast_to(BENT, (6, 3)), 0.9, rng, sigma_mm=2.0)
+    ukf.initialise(0.6, 0.3, time_s=0.0)
+    points = MerweScaledSigmaPoints(1, alpha=1.0, beta=2.0, kappa=2.0)
+    wrapped = lambda a, b: wrap_angle(np.subtract(a, b))  # noqa: E731
+
+    def circular_mean(sigmas, weights):
+        return np.array([np.arctan2(weights @ np.sin(sigmas[:, 0]), weights @ np.cos(sigmas[:, 0]))])
+
+    reference = UnscentedKalmanFilter(
+        dim_x=1, dim_z=6, dt=DT_S, hx=None, fx=lambda x, dt: x, points=points,
+        x_mean_fn=circular_mean, residual_x=wrapped,
+    )  # fmt: skip
+    reference.x, reference.P = np.array([0.6]), np.array([[0.09]])
+    shape = catheter.shape_vectors(BENT)
+    c = np.vstack([shape.c_tip_mm, shape.c_markers_mm])
+    for frame in frames[1:]:
+        estimate = ukf.step(frame)
+        reference.Q = np.array([[0.04 * DT_S]])
+        reference.predict()
+        z = np.concatenate([frame.tip_b_mm, frame.markers_b_mm.ravel()])
+        R = np.kron(np.eye(2), noise_cov(2.0))
+        reference.update(z, R=R, hx=lambda x: rotate_z(c, BENT[0] + x[0]).ravel())
+        assert estimate.delta_L_rad == pytest.approx(wrap_angle(reference.x[0]), abs=1e-12)
+        assert estimate.std_rad == pytest.approx(np.sqrt(reference.P[0, 0]), rel=1e-10)
+        nis = reference.y @ np.linalg.solve(reference.S, reference.y)
+        assert estimate.nis == pytest.approx(nis, rel=1e-9) and estimate.nis_dof == 6
+
+
+@pytest.mark.parametrize("delta_2", DELTA_2)
+@pytest.mark.parametrize("kind", ["tip-position", "body-positions"])
+def test_one_update_from_a_wide_prior_matches_the_closed_form_fisher_std(delta_2, kind):
+    """Low noise (0.05 mm, near linear): a prior of std 0.2 rad (80 x the frame's std) updated
+    once gives the per-frame closed-form result, std within 3 % and mean within 0.2 std."""
+    catheter = default_catheter(delta_2)
+    rng = np.random.default_rng(12)
+    frame = simulate(catheter, BENT, 1.0, rng, sigma_mm=0.05, markers=kind == "body-positions")[0]
+    if kind == "body-positions":
+        frame = replace(frame, tip_b_mm=None)
+    closed = make_estimator(kind, catheter).step(frame)
+    ukf = BendingPlaneUKF(catheter, QUIET)
+    ukf.initialise(1.0, 0.2, time_s=frame.time_s)
+    estimate = ukf.step(frame)
+    assert estimate.flags == Flag.NONE
+    assert estimate.std_rad == pytest.approx(closed.std_rad, rel=0.03)
+    assert abs(wrap_angle(estimate.delta_L_rad - closed.delta_L_rad)) < 0.2 * closed.std_rad
+
+
+def test_initial_state_is_the_closed_form_of_the_first_frame():
+    """The model vectors come from the shape expansion (to about 1e-5 mm), hence 1e-6 rad."""
+    catheter = default_catheter(np.pi / 2)
+    frame = simulate(catheter, BENT, 2.9, np.random.default_rng(2), markers=False)[0]
+    first = BendingPlaneUKF(catheter, UKFSettings(**EXACT)).step(frame)
+    closed = make_estimator("tip-position", catheter).step(frame)
+    assert first.delta_L_rad == pytest.approx(closed.delta_L_rad, abs=1e-6)
+    assert first.std_rad == pytest.approx(closed.std_rad, rel=1e-4)
+
+
+def test_rate_state_prediction_matches_the_linear_kalman_filter():
+    """With include_rate the process model is linear: P' = F P F^T + Q exactly."""
+    catheter = default_catheter()
+    settings = UKFSettings(
+        include_rate=True,
+        process_noise_rad2_s=0.01,
+        rate_process_noise_rad2_s3=0.2,
+        initial_rate_std_rad_s=0.3,
+    )
+    ukf = BendingPlaneUKF(catheter, settings)
+    ukf.initialise(0.5, 0.1, time_s=0.0)
+    P0 = ukf.covariance[:2, :2]
+    estimate = ukf.step(Observation(time_s=0.2, q=BENT))
+    assert Flag.NO_MEASUREMENT in estimate.flags
+    dt = 0.2
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    qa = settings.rate_process_noise_rad2_s3
+    Q = np.array([[0.01 * dt + qa * dt**3 / 3, qa * dt**2 / 2], [qa * dt**2 / 2, qa * dt]])
+    np.testing.assert_allclose(ukf.covariance[:2, :2], F @ P0 @ F.T + Q, rtol=1e-12, atol=1e-15)
+    assert ukf.state[0] == pytest.approx(0.5)
+
+
+def test_sigma_sqrt_and_inverse_are_cholesky_with_documented_jitter():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    A = A @ A.T + 0.1 * np.eye(6)
+    U = sigma_sqrt(A)
+    np.testing.assert_allclose(U.T @ U, A, rtol=1e-12, atol=1e-12)
+    assert np.allclose(U, np.triu(U))
+    np.testing.assert_allclose(spd_inverse(A), np.linalg.inv(A), rtol=1e-9, atol=1e-12)
+    singular = np.array([[1.0, 1.0], [1.0, 1.0]])  # PSD, rank one: the jitter makes it PD
+    U = sigma_sqrt(singular)
+    np.testing.assert_allclose(U.T @ U, singular, atol=1e-8)
+    with pytest.raises(np.linalg.LinAlgError):
+        sigma_sqrt(np.array([[1.0, 0.0], [0.0, -1.0]]))
 
 
 # ---------------------------------------------------------------------------- statistics
-@pytest.mark.parametrize("delta_2", DELTA_2)
-def test_final_error_reaches_the_cramer_rao_bound_over_100_frames(delta_2):
-    """RMS of the final estimate over 200 runs of N = 100 frames <= 1.3 CRB / sqrt(N)."""
+@pytest.mark.parametrize(
+    "delta_2, settings",
+    [(0.0, QUIET), (np.pi / 2, QUIET), (0.0, UKFSettings(process_noise_rad2_s=0.0))],
+    ids=["planar", "non-planar", "planar, model error on"],
+)
+def test_final_error_reaches_the_cramer_rao_bound_over_100_frames(delta_2, settings):
+    """RMS of the final estimate over 200 runs of N = 100 frames <= 1.3 CRB / sqrt(N), and
+    the reported std is the bound. With the model error on, a planar catheter loses nothing:
+    the deviation moves the shape within its bending plane."""
     catheter = default_catheter(delta_2)
-    ukf = BendingPlaneUKF(catheter, QUIET)
+    ukf = BendingPlaneUKF(catheter, settings)
     n_frames, n_runs, truth = 100, 200, 0.5
     rng = np.random.default_rng(11)
     qs = np.broadcast_to(BENT, (n_frames, 3))
     errors, stds = [], []
     for _ in range(n_runs):
         final = run(ukf, simulate(catheter, qs, truth, rng))[-1]
-        assert final.valid and final.flags == Flag.NONE
+        assert final.valid and Flag.HELD not in final.flags
         errors.append(wrap_angle(final.delta_L_rad - truth))
         stds.append(final.std_rad)
-    bound = combined_crb(catheter, BENT, truth, noise_cov(1.0)) / np.sqrt(n_frames)
+    bound = float(crb_markers(catheter, BENT, truth, noise_cov(1.0))) / np.sqrt(n_frames)
     rms = float(np.sqrt(np.mean(np.square(errors))))
     assert rms <= 1.3 * bound
-    # The reported std is the accumulated information, i.e. the bound itself.
     assert np.median(stds) == pytest.approx(bound, rel=0.05)
 
 
@@ -127,7 +227,7 @@ def test_nees_and_nis_lie_in_their_chi_square_bands():
     is conservative for a time average.
     """
     catheter = default_catheter(np.pi / 2)
-    settings = UKFSettings(process_noise_rad2_s=2e-3, rotation_noise_gain_rad=5e-3)
+    settings = UKFSettings(process_noise_rad2_s=2e-3, rotation_noise_gain_rad=5e-3, **EXACT)
     ukf = BendingPlaneUKF(catheter, settings)
     n_frames, n_runs = 60, 200
     t = np.arange(n_frames) * DT_S
@@ -163,12 +263,7 @@ def velocity_comparison(settings, frames_for_run, n_runs, rng, truth):
     for _ in range(n_runs):
         frames = frames_for_run(catheter, rng)
         a, b = run(with_velocity, frames), run(position_only, frames)
-        fused.append(
-            [
-                e.nis_dof in (9, 12) and e.nis_dof == b_e.nis_dof + 3
-                for e, b_e in zip(a, b, strict=True)
-            ]
-        )
+        fused.append([e.nis_dof == b_e.nis_dof + 3 for e, b_e in zip(a, b, strict=True)])
         err_a = wrap_angle(np.array([e.delta_L_rad for e in a[10:]]) - truth)
         err_b = wrap_angle(np.array([e.delta_L_rad for e in b[10:]]) - truth)
         diffs.append(np.mean(err_a**2) - np.mean(err_b**2))
@@ -184,34 +279,42 @@ def moving_joints(n_frames):
     return qs, np.broadcast_to(MOVING_Q_DOT, qs.shape)
 
 
-def test_finite_difference_velocity_never_makes_the_error_worse():
+def test_a_finite_difference_velocity_is_offered_after_a_rejected_tip_and_gated_out():
     """Velocities (tip_t - tip_{t-1}) / dt of the measured tips, with their cross-covariance.
 
-    Every 6th frame has a wrongly segmented marker (10 mm off), so the gate rejects it; the
-    next frame's velocity then carries that frame's good tip, which the filter has not used,
-    and is fused. Everywhere else it only repeats the previous tip and is left out. Paired
-    runs: the mean-square error with velocity may exceed the one without by at most three
-    Monte Carlo standard errors.
+    Decorrelated from this frame's tip, such a velocity measures the previous tip, so it is
+    offered only after a frame whose tip was not fused. Every 6th frame the tip is wrongly
+    segmented (10 mm off): its group is rejected (the marker is fused), the next frame
+    offers the velocity, which repeats the wrong tip, and its own gate rejects it. Paired
+    runs: the error with velocity is the error without.
     """
-    n_frames, n_runs, truth = 80, 100, -2.0
+    n_frames, n_runs, truth = 80, 40, -2.0
     qs, q_dots = moving_joints(n_frames)
+    cov = noise_cov(0.2)
 
     def frames_for_run(catheter, rng):
-        frames = simulate(catheter, qs, truth, rng, sigma_mm=0.2, q_dots=q_dots, velocity=True)
+        frames = simulate(catheter, qs, truth, rng, sigma_mm=0.2, q_dots=q_dots)
         for k in range(6, n_frames, 6):
-            markers = frames[k].markers_b_mm.copy()
-            markers[0] += 10.0
-            frames[k] = replace(frames[k], markers_b_mm=markers)
-        return frames
+            frames[k] = replace(frames[k], tip_b_mm=frames[k].tip_b_mm + 10.0)
+        return [frames[0]] + [
+            replace(now, velocity_b_mm_s=(now.tip_b_mm - before.tip_b_mm) / DT_S,
+                    velocity_cov_b=2.0 * cov / DT_S**2, velocity_tip_cov_b=cov / DT_S)
+            for before, now in zip(frames[:-1], frames[1:], strict=True)
+        ]  # fmt: skip
 
     settings = UKFSettings(process_noise_rad2_s=1e-4, rotation_noise_gain_rad=1e-4)
+    catheter = default_catheter(np.pi / 2)
+    frames = frames_for_run(catheter, np.random.default_rng(20))
+    estimates = run(BendingPlaneUKF(catheter, settings), frames)
+    after = np.zeros(n_frames, dtype=bool)
+    after[7::6] = True
+    assert all(Flag.OUTLIER_REJECTED in e.flags for e in np.array(estimates)[after])
+    assert estimates[-1].rejected_outliers == 2 * ((n_frames - 1) // 6)
     diffs, fused = velocity_comparison(
         settings, frames_for_run, n_runs, np.random.default_rng(21), truth
     )
-    after_rejection = np.zeros(n_frames, dtype=bool)
-    after_rejection[7::6] = True
-    assert np.all(fused[:, after_rejection]) and not np.any(fused[:, ~after_rejection])
-    assert diffs.mean() <= 3.0 * diffs.std(ddof=1) / np.sqrt(n_runs)
+    assert not np.any(fused)
+    np.testing.assert_allclose(diffs, 0.0, atol=1e-15)
 
 
 def test_an_independent_velocity_is_fused_every_frame_and_helps():
@@ -246,7 +349,7 @@ def test_an_independent_velocity_is_fused_every_frame_and_helps():
     diffs, fused = velocity_comparison(
         settings, frames_for_run, n_runs, np.random.default_rng(22), truth
     )
-    assert np.all(fused[:, 1:])
+    assert np.mean(fused[:, 1:]) > 0.98
     assert diffs.mean() <= 3.0 * diffs.std(ddof=1) / np.sqrt(n_runs)
     assert diffs.mean() < 0.0
 
@@ -274,47 +377,56 @@ def test_tracks_a_drift_through_the_wrap_without_a_two_pi_jump(include_rate):
         assert ukf.state[1] == pytest.approx(0.3, abs=0.15)
 
 
-def test_torsion_step_of_90_degrees_is_followed_within_three_frames():
-    """K = 3: a 90 degree jump is far outside the NIS gate, so the first two frames after it
-    are rejected; the third consecutive rejection whose data fit the model (closed-form cost
-    inside the gate) re-initialises the filter from the closed form, after which the error is
-    below 3 std. No process noise could explain the jump (the gate also sees the radial
-    residual), so process noise is kept at its default.
-    """
-    k_frames = 3
+def test_a_torsion_jump_with_the_base_still_is_followed_at_once():
+    """A 90 degree jump rejects the whole frame against the held estimate; its closed form is
+    informative and consistent, so a restarted hypothesis is weighed against the held one
+    (prior: the jump probability with the base still) and wins on the first frame, with a
+    std that covers the truth."""
     catheter = default_catheter()
     ukf = BendingPlaneUKF(catheter)
     n_before, n_after = 30, 20
     deltas = np.r_[np.full(n_before, 0.4), np.full(n_after, 0.4 + np.pi / 2)]
     qs = np.broadcast_to(BENT, (n_before + n_after, 3))
     estimates = run(ukf, simulate(catheter, qs, deltas, np.random.default_rng(8)))
-    after = estimates[n_before:]
-    for e in after[: k_frames - 1]:
-        assert Flag.OUTLIER_REJECTED in e.flags and Flag.HELD in e.flags
-    for e, truth in zip(after[k_frames - 1 :], deltas[n_before + k_frames - 1 :], strict=True):
+    for e, truth in zip(estimates[n_before:], deltas[n_before:], strict=True):
         assert abs(wrap_angle(e.delta_L_rad - truth)) < 3.0 * e.std_rad
-    assert after[-1].rejected_outliers == k_frames - 1
+        assert e.std_rad < 0.05
+    assert ukf.hypotheses == 1
 
 
-def test_a_single_outlier_is_rejected_counted_and_does_not_move_the_estimate():
+def test_a_single_wrong_point_is_rejected_counted_and_the_rest_fused():
     catheter = default_catheter()
     ukf = BendingPlaneUKF(catheter)
     rng = np.random.default_rng(4)
     frames = simulate(catheter, np.broadcast_to(BENT, (30, 3)), 0.7, rng)
-    bad = frames[20]
-    # A wrong segmentation: the tip 10 mm away from where it is, in a random direction.
     direction = rng.normal(size=3)
-    frames[20] = replace(bad, tip_b_mm=bad.tip_b_mm + 10.0 * direction / np.linalg.norm(direction))
+    # A wrong segmentation: the tip 10 mm away from where it is.
+    frames[20] = replace(frames[20], tip_b_mm=frames[20].tip_b_mm + 10.0 * direction
+                         / np.linalg.norm(direction))  # fmt: skip
     estimates = run(ukf, frames)
     rejected = estimates[20]
-    assert Flag.OUTLIER_REJECTED in rejected.flags and Flag.HELD in rejected.flags
-    assert rejected.rejected_outliers == 1
-    dof = 3 * (1 + len(catheter.marker_arclengths_mm))  # tip and markers (velocity held back)
-    assert rejected.nis > gate_threshold(0.9999, dof) and rejected.nis_dof == dof
-    assert rejected.delta_L_rad == estimates[19].delta_L_rad
-    assert rejected.std_rad > estimates[19].std_rad
+    assert Flag.OUTLIER_REJECTED in rejected.flags and Flag.HELD not in rejected.flags
+    assert rejected.rejected_outliers == 1 and rejected.nis_dof == 3  # the marker alone
+    assert rejected.std_rad < estimates[19].std_rad
+    assert abs(wrap_angle(rejected.delta_L_rad - 0.7)) < 3 * rejected.std_rad
     assert all(Flag.OUTLIER_REJECTED not in e.flags for e in estimates[21:])
     assert estimates[-1].rejected_outliers == 1
+
+
+def test_a_frame_of_inconsistent_wrong_points_is_held():
+    """Tip and marker both wrong, in unrelated directions: no rotation explains them, so no
+    hypothesis starts from them, and the estimate holds."""
+    catheter = default_catheter()
+    ukf = BendingPlaneUKF(catheter)
+    frames = simulate(catheter, np.broadcast_to(BENT, (25, 3)), 0.7, np.random.default_rng(7))
+    markers = frames[20].markers_b_mm + np.array([[0.0, -12.0, 5.0]])
+    frames[20] = replace(frames[20], tip_b_mm=frames[20].tip_b_mm + np.array([9.0, 4.0, -3.0]),
+                         markers_b_mm=markers)  # fmt: skip
+    estimates = run(ukf, frames)
+    held = estimates[20]
+    assert Flag.OUTLIER_REJECTED in held.flags and Flag.HELD in held.flags
+    assert held.delta_L_rad == pytest.approx(estimates[19].delta_L_rad, abs=1e-12)
+    assert held.rejected_outliers == 2 and ukf.hypotheses == 1
 
 
 # ---------------------------------------------------------------------------- observability
@@ -323,11 +435,11 @@ def test_near_straight_predicts_only_std_grows_and_estimate_holds():
     ukf = BendingPlaneUKF(catheter, UKFSettings(process_noise_rad2_s=0.02))
     rng = np.random.default_rng(6)
     bent = simulate(catheter, np.broadcast_to(BENT, (20, 3)), 1.2, rng)
-    straight_q = np.array([[0.3 + 0.05 * k, 1e-4 * (-1) ** k, 0.0] for k in range(40)])
+    straight_q = np.array([[0.3, 1e-4 * (-1) ** k, 0.0] for k in range(40)])
     straight = simulate(catheter, straight_q, 1.2, rng, t0_s=bent[-1].time_s + DT_S)
     estimates = run(ukf, bent + straight)
     held = estimates[20:]
-    assert all(e.flags == Flag.UNINFORMATIVE | Flag.HELD for e in held)
+    assert all(Flag.UNINFORMATIVE in e.flags and Flag.HELD in e.flags for e in held)
     assert all(e.delta_L_rad == estimates[19].delta_L_rad for e in held)
     stds = np.array([estimates[19].std_rad] + [e.std_rad for e in held])
     assert np.all(np.diff(stds) > 0)
@@ -368,13 +480,16 @@ def test_not_initialised_until_the_first_informative_frame():
     assert abs(wrap_angle(first.delta_L_rad + 0.3)) < 4 * first.std_rad
 
 
-def test_initial_state_is_the_closed_form_of_the_first_frame():
-    catheter = default_catheter(np.pi / 2)
-    frame = simulate(catheter, BENT, 2.9, np.random.default_rng(2), markers=False)[0]
-    first = BendingPlaneUKF(catheter).step(frame)
-    closed = make_estimator("tip-position", catheter).step(frame)
-    assert first.delta_L_rad == pytest.approx(closed.delta_L_rad, abs=1e-12)
-    assert first.std_rad == pytest.approx(closed.std_rad, rel=1e-9)
+def test_a_nearly_straight_frame_never_starts_the_filter():
+    """Bent 2 mm at the tip but deflected by a joint deviation of 0.1 mm (prior 0.1 mm): the
+    frame cannot tell the plane from its opposite, so it starts nothing."""
+    catheter = default_catheter()
+    q = np.array([0.2, 0.05, 0.0])
+    frames = simulate(catheter, np.broadcast_to(q, (20, 3)), 1.0, np.random.default_rng(5),
+                      sigma_mm=0.1)  # fmt: skip
+    estimates = run(BendingPlaneUKF(catheter), frames)
+    assert all(not e.valid and Flag.NOT_INITIALISED in e.flags for e in estimates)
+    assert all(Flag.UNINFORMATIVE in e.flags for e in estimates)
 
 
 # ---------------------------------------------------------------------------- missing data
@@ -383,7 +498,8 @@ def test_missing_or_nan_measurements_give_predict_only_steps():
     ukf = BendingPlaneUKF(catheter, UKFSettings(process_noise_rad2_s=1e-3))
     frames = simulate(catheter, np.broadcast_to(BENT, (15, 3)), 0.2, np.random.default_rng(9))
     nan = np.full(3, np.nan)
-    frames[10] = replace(frames[10], tip_b_mm=nan, markers_b_mm=np.full_like(frames[10].markers_b_mm, np.nan))
+    frames[10] = replace(frames[10], tip_b_mm=nan,
+                         markers_b_mm=np.full_like(frames[10].markers_b_mm, np.nan))  # fmt: skip
     frames[11] = replace(frames[11], tip_b_mm=None, markers_b_mm=None)
     frames[12] = replace(frames[12], tip_cov_b=np.full((3, 3), np.nan), markers_b_mm=None)
     estimates = run(ukf, frames)
@@ -411,71 +527,15 @@ def test_partially_missing_markers_update_with_what_is_there():
     assert estimates[10].std_rad < estimates[9].std_rad
 
 
-# ---------------------------------------------------------------------------- identities
-@pytest.mark.parametrize("delta_2", DELTA_2)
-@pytest.mark.parametrize("kind", ["tip-position", "body-positions"])
-def test_one_update_from_a_wide_prior_matches_the_closed_form_fisher_std(delta_2, kind):
-    """Low noise (0.05 mm, near linear): a prior of std 0.2 rad (80 x the frame's std) updated
-    once gives the per-frame closed-form result, std within 3 % and mean within 0.2 std.
-    """
-    catheter = default_catheter(delta_2)
-    rng = np.random.default_rng(12)
-    frame = simulate(catheter, BENT, 1.0, rng, sigma_mm=0.05, markers=kind == "body-positions")[0]
-    if kind == "body-positions":
-        frame = replace(frame, tip_b_mm=None)
-    closed = make_estimator(kind, catheter).step(frame)
-    ukf = BendingPlaneUKF(catheter, QUIET)
-    ukf.initialise(1.0, 0.2, time_s=frame.time_s)
-    estimate = ukf.step(frame)
-    assert estimate.flags == Flag.NONE
-    assert estimate.std_rad == pytest.approx(closed.std_rad, rel=0.03)
-    assert abs(wrap_angle(estimate.delta_L_rad - closed.delta_L_rad)) < 0.2 * closed.std_rad
-
-
-def test_rate_state_prediction_matches_the_linear_kalman_filter():
-    """With include_rate the process model is linear: P' = F P F^T + Q exactly."""
-    catheter = default_catheter()
-    settings = UKFSettings(
-        include_rate=True,
-        process_noise_rad2_s=0.01,
-        rate_process_noise_rad2_s3=0.2,
-        initial_rate_std_rad_s=0.3,
-    )
-    ukf = BendingPlaneUKF(catheter, settings)
-    ukf.initialise(0.5, 0.1, time_s=0.0)
-    P0 = ukf.covariance
-    estimate = ukf.step(Observation(time_s=0.2, q=BENT))
-    assert Flag.NO_MEASUREMENT in estimate.flags
-    dt = 0.2
-    F = np.array([[1.0, dt], [0.0, 1.0]])
-    qa = settings.rate_process_noise_rad2_s3
-    Q = np.array([[0.01 * dt + qa * dt**3 / 3, qa * dt**2 / 2], [qa * dt**2 / 2, qa * dt]])
-    np.testing.assert_allclose(ukf.covariance, F @ P0 @ F.T + Q, rtol=1e-12, atol=1e-15)
-    assert ukf.state[0] == pytest.approx(0.5)
-
-
-def test_sigma_sqrt_and_inverse_are_cholesky_with_documented_jitter():
-    rng = np.random.default_rng(0)
-    A = rng.normal(size=(6, 6))
-    A = A @ A.T + 0.1 * np.eye(6)
-    U = sigma_sqrt(A)
-    np.testing.assert_allclose(U.T @ U, A, rtol=1e-12, atol=1e-12)
-    assert np.allclose(U, np.triu(U))
-    np.testing.assert_allclose(spd_inverse(A), np.linalg.inv(A), rtol=1e-9, atol=1e-12)
-    singular = np.array([[1.0, 1.0], [1.0, 1.0]])  # PSD, rank one: the jitter makes it PD
-    U = sigma_sqrt(singular)
-    np.testing.assert_allclose(U.T @ U, singular, atol=1e-8)
-    with pytest.raises(np.linalg.LinAlgError):
-        sigma_sqrt(np.array([[1.0, 0.0], [0.0, -1.0]]))
-
-
 def test_a_non_positive_definite_covariance_is_repaired_never_nan():
     catheter = default_catheter()
     ukf = BendingPlaneUKF(catheter, UKFSettings(include_rate=True))
     frames = simulate(catheter, np.broadcast_to(BENT, (10, 3)), 0.3, np.random.default_rng(3))
     estimates = [ukf.step(f) for f in frames[:5]]
-    # Simulate what filterpy's predict cannot factorise (as after a numerically broken update).
-    ukf._kf.P = np.array([[1e-4, 1.0], [1.0, 1e-4]])
+    # What no predict can factorise (as after a numerically broken update).
+    bad = np.diag(np.diag(ukf.covariance))
+    bad[0, 1] = bad[1, 0] = 1.0
+    ukf._bank.P[0, ukf._bank.leading()[0]] = bad
     repaired = ukf.step(frames[5])
     assert Flag.COVARIANCE_REPAIRED in repaired.flags and repaired.valid
     estimates += [ukf.step(f) for f in frames[6:]]
@@ -523,8 +583,9 @@ def test_single_view_updates_reduce_the_std_and_converge(delta_2, rig_kind):
     first = simulate(catheter, BENT, truth, rng, sigma_mm=5.0)[0]
     estimates = [ukf.step(first)]
     assert estimates[0].valid
+    views = rig.views
     for k in range(1, 61):
-        view = rig.views[0] if k % 2 else rig.views[1]
+        view = views[k % 2]
         q = BENT + np.array([0.02 * k, 0.0, 0.0])
         estimates.append(ukf.step(view_frame(catheter, view, q, truth, rng, k * DT_S, sigma)))
     stds = np.array([e.std_rad for e in estimates])
@@ -548,14 +609,17 @@ def test_a_single_view_does_not_initialise_the_filter():
 def test_online_noise_scale_finds_an_underestimated_segmentation_noise():
     """True noise 2 mm, assumed 1 mm: the covariance scale converges towards 4."""
     catheter = default_catheter()
-    ukf = BendingPlaneUKF(catheter, UKFSettings(estimate_noise=True, process_noise_rad2_s=1e-4))
+    ukf = BendingPlaneUKF(
+        catheter, UKFSettings(estimate_noise=True, process_noise_rad2_s=1e-4, **EXACT)
+    )
     rng = np.random.default_rng(15)
     frames = simulate(catheter, np.broadcast_to(BENT, (400, 3)), 0.0, rng, sigma_mm=2.0)
     assumed = noise_cov(1.0)
     frames = [
-        replace(f, tip_cov_b=assumed, markers_cov_b=np.broadcast_to(assumed, f.markers_cov_b.shape).copy())
+        replace(f, tip_cov_b=assumed,
+                markers_cov_b=np.broadcast_to(assumed, f.markers_cov_b.shape).copy())
         for f in frames
-    ]
+    ]  # fmt: skip
     estimates = run(ukf, frames)
     assert ukf.noise_scale == pytest.approx(4.0, rel=0.3)
     errors = [wrap_angle(e.delta_L_rad) for e in estimates[200:]]
@@ -563,13 +627,16 @@ def test_online_noise_scale_finds_an_underestimated_segmentation_noise():
     assert np.sqrt(np.mean(np.square(errors))) < 1.5 * np.mean(stds)
 
 
-def test_make_estimator_builds_the_ukf_variants():
+def test_make_estimator_builds_the_filters():
     catheter = default_catheter()
     ukf = make_estimator("ukf", catheter, process_noise_rad2_s=1e-3)
     position = make_estimator("ukf-position", catheter)
+    grid = make_estimator("grid", catheter, cells=1024, outlier_probability=0.05)
     assert isinstance(ukf, BendingPlaneUKF) and ukf.name == "ukf"
     assert ukf.settings.use_velocity and not position.settings.use_velocity
     assert position.name == "ukf-position"
+    assert grid.name == "grid" and grid.cells == 1024
+    assert grid.settings.outlier_probability == 0.05
 
 
 @pytest.mark.parametrize(
@@ -586,6 +653,11 @@ def test_make_estimator_builds_the_ukf_variants():
         {"noise_forgetting": 1.0},
         {"initial_std_rad": 0.0},
         {"alpha": 0.0},
+        {"outlier_probability": 1.0},
+        {"outlier_scale": 1.0},
+        {"joint_error_mm": -0.1},
+        {"deviation_length_mm": 0.0},
+        {"max_hypotheses": 0},
     ],
 )
 def test_settings_are_validated_with_clear_errors(bad):
@@ -602,30 +674,8 @@ def test_out_of_order_frames_are_refused():
         ukf.step(frames[0])
 
 
-def test_persistent_model_mismatch_is_accepted_with_inflated_uncertainty():
-    """Contact deflection (the catheter bends as if q_d were 0.4 mm larger) makes every frame
-    inconsistent with the model. The filter must not refuse to answer: after
-    ``reacquire_after_rejections`` frames it restarts from the closed form with the std and the
-    measurement noise inflated by the misfit, flags MODEL_MISMATCH, and stays consistent."""
-    from models.imaging import default_orthographic_rig
-    from replay.simulation.simulator import NoiseSettings, default_scene, hold, simulate_frames
-    from tracker.reconstruction import Reconstructor
-
+def test_a_noise_covariance_that_is_not_positive_definite_is_one_clear_error():
     catheter = default_catheter()
-    scene = default_scene(catheter, default_orthographic_rig())
-    truth = 0.8
-    frames = simulate_frames(
-        scene, hold([0.3, 0.7, 0.5], 5.0), truth, NoiseSettings(1.0),
-        np.random.default_rng(0), model_joint_offset=np.array([0.0, 0.0, 0.4]),
-    )
-    reconstructor = Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
-    observations = reconstructor.observe_batch(frames)
-    estimates = run(BendingPlaneUKF(catheter), observations)
-    k = UKFSettings().reacquire_after_rejections
-    assert all(not e.valid for e in estimates[: k - 1])
-    assert all(e.valid for e in estimates[k - 1 :])
-    assert Flag.MODEL_MISMATCH in estimates[k - 1].flags
-    assert estimates[-1].rejected_outliers <= 5
-    errors = np.array([wrap_angle(e.delta_L_rad - truth) for e in estimates[k - 1 :]])
-    stds = np.array([e.std_rad for e in estimates[k - 1 :]])
-    assert np.mean(np.abs(errors) <= 2 * stds) >= 0.9
+    frame = simulate(catheter, BENT, 0.0, np.random.default_rng(0))[0]
+    with pytest.raises(ValueError, match="not positive definite"):
+        BendingPlaneUKF(catheter).step(replace(frame, tip_cov_b=-frame.tip_cov_b))

@@ -42,13 +42,14 @@ from tracker.estimators.measurement import (
     deviation_decay,
     deviation_jacobian,
     deviation_prior,
+    expansion_basis,
     inlier_probability,
     jump_probability,
     mixture_log_likelihood,
     model_error_covariance,
     offered_velocity,
     process_variance,
-    quadratic_terms,
+    quadratic_moments,
     rotation_invariant,
     velocity_offered,
     wrap,
@@ -228,7 +229,8 @@ class GridFilter:
                 J = deviation_jacobian(J, groups.K[0], self.mu[at])
             S = rotation_invariant(groups.R[0]) + M
             if self._deviation:
-                S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2)
+                bias, spread = quadratic_moments(groups.K[0], self.Sigma)
+                S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
             S = np.where(present[:, None, None], S, np.eye(3))
             W = spd_inverse(S)
             logdet = np.linalg.slogdet(S)[1]
@@ -243,8 +245,8 @@ class GridFilter:
             residual[..., 1] = cos * y[:, 1] - sin * y[:, 0] - c[:, 1]
             residual[..., 2] = y[:, 2] - c[:, 2]
             if self._deviation:
-                residual -= np.einsum("gij,nj->ngi", groups.J[0], self.mu)
-                residual -= np.einsum("gij,nj->ngi", groups.K[0], quadratic_terms(self.mu))
+                basis = expansion_basis(self.mu)  # (N, 5)
+                residual -= np.einsum("gij,nj->ngi", groups.JK[0], basis) + bias
             d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
         else:
             S = groups.R[0]

@@ -83,6 +83,11 @@ def wrap(angle: Array) -> Array:
     return (angle + math.pi) % _TWO_PI - math.pi
 
 
+def _is_every_trial(b: Array, n: int) -> bool:
+    """Whether the trial indices b are 0, 1, ..., n - 1 (then no gather is needed)."""
+    return b.size == n and (n == 1 or bool(b[-1] == n - 1 and np.all(np.diff(b) == 1)))
+
+
 @dataclass(frozen=True)
 class FrameGroups:
     """One frame's 3-D measurement groups for B trials (a leading batch axis).
@@ -193,7 +198,7 @@ class FrameGroups:
         ``deviation``: index of dq = (dq_p, dq_d) in the state; ``rate``: index of the torsion
         rate, which adds ``rate e_z x c_tip`` to the velocity group.
         """
-        whole = b.size == self.y.shape[0]
+        whole = _is_every_trial(b, self.y.shape[0])
         c = self.c if whole else self.c[b]
         r, S = sigmas.shape[:2]
         if deviation is not None:
@@ -413,6 +418,21 @@ def expansion_basis(dq: Array) -> Array:
 def quadratic_terms(dq: Array) -> Array:
     """``[dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 3)."""
     return expansion_basis(dq)[..., 2:]
+
+
+def quadratic_moments(K: Array, Sigma: Array) -> tuple[Array, Array]:
+    """Mean (..., 3) and covariance (..., 3, 3) of ``K quadratic_terms(dq)`` for a zero-mean
+    Gaussian dq of covariance Sigma (..., 2, 2), K (..., 3, 3) (Isserlis' theorem)."""
+    a, b, d = Sigma[..., 0, 0], Sigma[..., 0, 1], Sigma[..., 1, 1]
+    moments = np.stack([a, b, d], -1)
+    cov = np.zeros(Sigma.shape[:-2] + (3, 3))
+    cov[..., 0, 0], cov[..., 2, 2] = 2 * a * a, 2 * d * d
+    cov[..., 1, 1] = a * d + b * b
+    cov[..., 0, 1] = cov[..., 1, 0] = 2 * a * b
+    cov[..., 1, 2] = cov[..., 2, 1] = 2 * b * d
+    cov[..., 0, 2] = cov[..., 2, 0] = 2 * b * b
+    mean = (K @ moments[..., None])[..., 0]
+    return mean, K @ cov @ np.swapaxes(K, -1, -2)
 
 
 def deviation_jacobian(J: Array, K: Array, dq: Array) -> Array:
@@ -681,11 +701,14 @@ class FrameFit:
             return np.where(self.information > 0, 1.0 / np.sqrt(self.information), np.inf)
 
 
-def fit_frame(coefficients: Array, dof: Array, newton_steps: int = 4) -> FrameFit:
+def fit_frame(
+    coefficients: Array, dof: Array, information: Array | None = None, newton_steps: int = 4
+) -> FrameFit:
     """Global minimum of ``f(delta) = coefficients . [1, cos, sin, cos 2, sin 2]`` (B, 5).
 
     A degree-two trigonometric polynomial has at most two minima; 64 samples find the basin of
-    the global one and Newton's method polishes it.
+    the global one and Newton's method polishes it. ``information`` (B,): the Fisher
+    information to report (default: the observed one, ``f''/2`` at the minimum).
     """
     f = coefficients @ _FIT_TABLE  # (B, 64)
     best = np.argmin(f, axis=1)
@@ -701,10 +724,12 @@ def fit_frame(coefficients: Array, dof: Array, newton_steps: int = 4) -> FrameFi
     curvature = -a1 * c1 - b1 * s1 - 4 * a2 * c2 - 4 * b2 * s2
     far = np.abs(wrap(_FIT_ANGLES[None, :] - x[:, None])) > 0.5 * math.pi
     other = np.min(np.where(far, f, np.inf), axis=1)
+    if information is None:
+        information = np.maximum(0.5 * curvature, 0.0)
     return FrameFit(
         delta_L_rad=wrap(x),
         cost=np.maximum(cost, 0.0),
-        information=np.maximum(0.5 * curvature, 0.0),
+        information=information,
         sign_evidence=np.maximum(other - cost, 0.0),
         dof=np.asarray(dof),
     )
@@ -785,6 +810,7 @@ __all__ = [
     "velocity_offered",
     "model_error_covariance",
     "process_variance",
+    "quadratic_moments",
     "quadratic_terms",
     "rotation_invariant",
     "trig_table",

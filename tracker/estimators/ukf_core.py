@@ -54,6 +54,7 @@ from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.linalg import lapack
 
 from tracker.estimators.measurement import (
+    FrameFit,
     FrameGroups,
     deviation_decay,
     deviation_prior,
@@ -64,6 +65,8 @@ from tracker.estimators.measurement import (
     offered_velocity,
     outlier_threshold,
     process_variance,
+    quadratic_moments,
+    trig_table,
     velocity_offered,
     wrap,
 )
@@ -237,6 +240,7 @@ class FilterBank:
         self.tip_fused = np.zeros(B, dtype=bool)
         self.good_x, self.good_P = self.x.copy(), self.P.copy()
         self._single = True  # every trial has at most one hypothesis (a fast path)
+        self._held_slot = np.zeros(B, dtype=np.intp)
 
     def deviation_prior(self, q: Array) -> Array:
         """Prior variance of (dq_p, dq_d) at joint values q (B', 3), mm^2."""
@@ -323,7 +327,8 @@ class FilterBank:
         q = np.asarray(q, dtype=float)
         time_s = np.asarray(time_s, dtype=float)
         known = np.isfinite(self.time_s)
-        change = np.where(known[:, None], q - self.q, 0.0)
+        # Joint values before the first frame (or after ``initialise``) are unknown: no change.
+        change = np.where(known[:, None] & np.isfinite(self.q), q - self.q, 0.0)
         dt = np.where(known, time_s - self.time_s, 0.0)
         turn = change[:, 0]
         self.time_s, self.q = time_s.copy(), q.copy()
@@ -446,6 +451,11 @@ class FilterBank:
         noise = frame.noise(np.arange(B))
         check_measurement_covariance(noise, frame.present)
         three_d = isinstance(frame, FrameGroups)
+        # Trials without a usable group in this frame only predict.
+        measured = frame.present.any(axis=1)
+        if not measured.all():
+            flags |= np.where(measured, 0, _F["NO_MEASUREMENT"])
+            flags |= np.where(measured, 0, np.where(running, _F["HELD"], _F["NOT_INITIALISED"]))
         scale = self.noise_scale * self.mismatch_scale
         out.radius_mm = frame.radius_mm()
         M = None
@@ -461,7 +471,8 @@ class FilterBank:
             narrow = self.active & ~wide
             self.active &= ~(wide & narrow.any(axis=1)[:, None])
             all_wide = running & self.active.any(axis=1) & ~narrow.any(axis=1)
-        updating = self.active & ~wide & running[:, None]
+        all_wide &= measured
+        updating = self.active & ~wide & (running & measured)[:, None]
         spawn = np.zeros(B, dtype=bool)
         if updating.any():
             update = self._update(frame, updating, M, scale)
@@ -487,13 +498,13 @@ class FilterBank:
             if s.estimate_noise:
                 self._adapt_noise(touched, out.nis, out.nis_dof)
         if three_d:
-            first = ~running
+            first = ~running & measured
             if (first | all_wide | spawn).any():
                 jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
                 self._closed_form(frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip)
         else:
             # A single view leaves a mirror ambiguity: it updates a filter, never starts one.
-            flags |= np.where(~running, _F["NOT_INITIALISED"] | _F["UNINFORMATIVE"], 0)
+            flags |= np.where(~running & measured, _F["NOT_INITIALISED"] | _F["UNINFORMATIVE"], 0)
             flags |= np.where(all_wide, _F["UNINFORMATIVE"] | _F["HELD"], 0)
         self._normalise()
 
@@ -505,16 +516,36 @@ class FilterBank:
         # The frame's own information: noise, white model error and the deviation's prior.
         prior = self.deviation_prior(g.q) if s.estimates_deviation else np.zeros((b.size, 2))
         J = g.J
-        Sigma = g.R_bar * scale[b, None, None, None] + M[b]
+        # The deviation's quadratic term has a mean and a covariance under its prior.
+        prior_cov = prior[:, None, :, None] * np.eye(2)
+        bias, spread = quadratic_moments(g.K, prior_cov)
+        Sigma = g.R_bar * scale[b, None, None, None] + M[b] + spread
         Sigma = Sigma + np.einsum("bgij,bj,bgkj->bgik", J, prior, J)
         present = g.present
         Sigma = np.where(present[..., None, None], Sigma, np.eye(3))
         W = np.linalg.inv(Sigma)
-        # The deviation's quadratic term has the mean K [v_p, 0, v_d] under its prior.
-        bias = np.einsum("bgij,bj->bgi", g.K, prior @ np.array([[1.0, 0, 0], [0, 0, 1.0]]))
-        coefficients = group_coefficients(g.y, g.c + bias, W, g.q_r) * present[..., None]
-        dof = 3 * present.sum(axis=1)
-        fit = fit_frame(coefficients.sum(axis=1), dof)
+        coefficients = group_coefficients(g.y, g.c + bias, W, g.q_r)
+        # The frame's (expected) Fisher information per group: the model's slope e_z x c.
+        model = g.c + bias
+        slope = np.zeros_like(model)
+        slope[..., 0], slope[..., 1] = -model[..., 1], model[..., 0]
+        group_information = np.einsum("bgi,bgij,bgj->bg", slope, W, slope)
+        fit = self._fit(coefficients, group_information, present)
+        # A gross error among the groups: the worst one, if beyond the outlier threshold at
+        # the fit and not alone, is left out and the frame fitted again.
+        d2 = np.einsum("bgk,kb->bg", coefficients, trig_table(fit.delta_L_rad))
+        d2 = np.where(present, d2, -np.inf)
+        worst = np.argmax(d2, axis=1)
+        drop = (d2[np.arange(b.size), worst] > outlier_threshold(
+            3, s.outlier_probability, s.outlier_scale)) & (present.sum(axis=1) > 1)  # fmt: skip
+        if drop.any():
+            present = present.copy()
+            present[np.flatnonzero(drop), worst[drop]] = False
+            refit = self._fit(coefficients[drop], group_information[drop], present[drop])
+            fit = _merge_fits(fit, refit, drop)
+            self.rejected[b[drop]] += 1
+            flags[b[drop]] |= _F["OUTLIER_REJECTED"]
+        dof = fit.dof
         std = fit.std_rad
         if s.initial_std_rad is not None:
             std = np.maximum(std, s.initial_std_rad)
@@ -550,6 +581,9 @@ class FilterBank:
         if jumping.any():
             self._spawn(b[jumping], fit, std, jumping, Sigma[jumping], present[jumping], jump)
             fused_tip[b[jumping]] |= present[jumping, 0]
+            # Where the new hypothesis leads, the estimate is no longer held.
+            taken = b[jumping][self.leading()[b[jumping]] != self._held_slot[b[jumping]]]
+            flags[taken] &= ~_F["HELD"]
         # Frames that could not (re)start the filter.
         idle = ~restart
         start_idle = idle & first[b]
@@ -558,6 +592,14 @@ class FilterBank:
         self.rejected[b[start_idle & bad & ~mismatch]] += 1
         flags[b[start_idle]] |= _F["NOT_INITIALISED"] | why[start_idle]
         flags[b[wide_idle]] |= _F["HELD"] | why[wide_idle]
+
+    @staticmethod
+    def _fit(coefficients: Array, group_information: Array, present: Array) -> FrameFit:
+        """The global fit of the present groups."""
+        return fit_frame(
+            np.einsum("bgk,bg->bk", coefficients, present), 3 * present.sum(axis=1),
+            np.sum(group_information * present, axis=1),
+        )  # fmt: skip
 
     def _spawn(self, b, fit, std, chosen, Sigma, present, jump) -> None:
         """Add the closed-form hypothesis of trials b with weight jump x its marginal; the
@@ -576,11 +618,13 @@ class FilterBank:
         p = np.minimum(jump[b], 0.5)
         self.log_weight[b] += np.log1p(-p)[:, None]
         log_w = np.log(np.maximum(p, 1e-300)) + log_marginal
+        self._held_slot[b] = self.leading()[b]
         # The new hypothesis takes a free slot, or the weakest one if it is heavier.
         lw = np.where(self.active[b], self.log_weight[b], -np.inf)
         slot = np.argmin(lw, axis=1)
         take = log_w > lw[np.arange(b.size), slot]
         b, slot = b[take], slot[take]
+        self._single = False
         self.active[b, slot] = True
         self.log_weight[b, slot] = log_w[take]
         self._set(b, slot, fit.delta_L_rad[chosen][take], std[chosen][take], None)
@@ -641,7 +685,7 @@ class FilterBank:
         zp = self.Wm @ hs
         D = hs - zp[:, None]
         rho = frame.measured(b, about).reshape(r, m) - zp
-        present = frame.present if r == B else frame.present[b]
+        present = frame.present[b]
         noise = frame.noise(b) * scale[b, None, None, None]
         if M is not None:
             noise += M[b]
@@ -678,15 +722,14 @@ class FilterBank:
         P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
         n_in = inlier.sum(-1)
         p, k = s.outlier_probability, s.outlier_scale
-        log_lik = None
-        if not self._single:
-            log_lik = n_in * math.log1p(-p) - 0.5 * (nis + logdet_S + d * n_in * _LOG_2PI)
-            if p > 0 and outlier.any():
-                logdet_g = np.linalg.slogdet(S_g)[1]
-                log_lik = log_lik + np.sum(
-                    outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
-                               - 0.5 * (logdet_g + d * _LOG_2PI)), -1
-                )  # fmt: skip
+        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
+        log_lik = n_in * math.log1p(-p) - 0.5 * (nis + logdet_S + d * n_in * _LOG_2PI)
+        if p > 0 and outlier.any():
+            logdet_g = np.linalg.slogdet(S_g)[1]
+            log_lik = log_lik + np.sum(
+                outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
+                           - 0.5 * (logdet_g + d * _LOG_2PI)), -1
+            )  # fmt: skip
         with np.errstate(divide="ignore", invalid="ignore"):
             # The frame's information about delta_L: how much it shrank the variance.
             information = 1.0 / P_post[:, 0, 0] - 1.0 / P[:, 0, 0]
@@ -704,8 +747,7 @@ class FilterBank:
             self.x[bd, hd] = self.good_x[bd, hd] = x_post[done]
             self.P[bd, hd] = self.good_P[bd, hd] = P_post[done]
             self.mismatch_scale[bd] = 1.0 + MISMATCH_DECAY * (self.mismatch_scale[bd] - 1.0)
-        if log_lik is not None:
-            self.log_weight[b, h] += np.where(np.isfinite(log_lik), log_lik, -1e300)
+        self.log_weight[b, h] += np.where(np.isfinite(log_lik), log_lik, -1e300)
         shown = usable & ~uninformative
         innovation = None
         if B == 1:
@@ -717,6 +759,16 @@ class FilterBank:
             dof=np.where(shown, d * n_in, 0), rejected=outlier.sum(-1), inlier=inlier,
             fused_tip=done & inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
         )  # fmt: skip
+
+
+def _merge_fits(fit: FrameFit, refit: FrameFit, where: Array) -> FrameFit:
+    """``fit`` with the trials ``where`` (a mask) replaced by ``refit`` (one per True)."""
+    merged = {}
+    for name in ("delta_L_rad", "cost", "information", "sign_evidence", "dof"):
+        values = np.array(getattr(fit, name), copy=True)
+        values[where] = getattr(refit, name)
+        merged[name] = values
+    return FrameFit(**merged)
 
 
 def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:

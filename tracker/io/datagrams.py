@@ -12,7 +12,9 @@ the marker datagram its point count):
   :func:`decode_markers`.
 
 Every double starts at a multiple of 8 bytes. Decoders validate the size, magic, version and
-values and raise :class:`DatagramError`, whose ``reason`` is what the receivers count. The
+values (finite, and within the limits of :mod:`tracker.io.limits`: the robot's joint ranges,
+the cameras' coordinates) and raise :class:`DatagramError`, whose ``reason`` is what the
+receivers count. The
 sockets that send and receive these datagrams are in :mod:`tracker.io.udp`.
 """
 
@@ -25,6 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tracker.io.limits import (
+    JOINT_RATE_LIMITS,
+    JOINT_VALUE_LIMITS,
+    MAX_DATAGRAM_TIME_S,
+    MAX_IMAGE_COORDINATE,
+    MAX_POINT_SIGMA,
+    joints_in_range,
+)
 from tracker.types import Estimate, Frame
 
 Array = np.ndarray
@@ -135,7 +145,23 @@ def decode_joints(data: bytes) -> JointPacket:
     checked = [time_s, *values[:3]] if flags & JointFlags.NO_RATES else [time_s, *values]
     if not all(map(math.isfinite, checked)):
         raise DatagramError("non-finite", "joint datagram holds a NaN or infinite value")
-    return JointPacket(sequence, time_s, np.array(values[:3]), np.array(values[3:]), flags)
+    _check_time(time_s, "joint")
+    q, q_dot = np.array(values[:3]), np.array(values[3:])
+    if not joints_in_range(q, None if flags & JointFlags.NO_RATES else q_dot):
+        raise DatagramError(
+            "range",
+            f"joint datagram values {q.tolist()} or rates {q_dot.tolist()} are outside the"
+            f" robot's ranges (|q| <= {JOINT_VALUE_LIMITS.tolist()},"
+            f" |q_dot| <= {JOINT_RATE_LIMITS.tolist()})",
+        )
+    return JointPacket(sequence, time_s, q, q_dot, flags)
+
+
+def _check_time(time_s: float, name: str) -> None:
+    if not abs(time_s) <= MAX_DATAGRAM_TIME_S:
+        raise DatagramError(
+            "range", f"{name} datagram time {time_s:.6g} s is beyond {MAX_DATAGRAM_TIME_S:g} s"
+        )
 
 
 # --------------------------------------------------------------------------------- estimates
@@ -311,6 +337,7 @@ def decode_markers(
         )
     if not math.isfinite(time_s):
         raise DatagramError("non-finite", "marker datagram time is not finite")
+    _check_time(time_s, "marker")
     rows = np.frombuffer(data, dtype="<f8", offset=_MARKER_HEAD.size).reshape(views, n, 3)
     uvs, covs = [], []
     for view in rows:
@@ -321,6 +348,14 @@ def decode_markers(
             raise DatagramError("non-finite", "marker datagram holds an infinite value")
         if np.any(sigma[present] <= 0):
             raise DatagramError("sigma", "marker datagram holds a non-positive sigma")
+        if np.any(np.abs(uv[present]) > MAX_IMAGE_COORDINATE) or np.any(
+            sigma[present] > MAX_POINT_SIGMA
+        ):
+            raise DatagramError(
+                "range",
+                f"marker datagram holds a point beyond {MAX_IMAGE_COORDINATE:g} or a sigma"
+                f" beyond {MAX_POINT_SIGMA:g} (px or mm)",
+            )
         uv[missing] = np.nan
         cov = (sigma**2)[:, None, None] * np.eye(2)
         cov[missing] = np.nan

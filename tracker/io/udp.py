@@ -10,8 +10,10 @@ docs/design.md section 7; the datagrams themselves (layouts, encoders, decoders)
 - :class:`JointStreamer` plays the controller (simulations, demos, tests).
 
 Receivers drop and count malformed datagrams by the ``reason`` of their
-:class:`~tracker.io.datagrams.DatagramError`. Listeners bind to 127.0.0.1 unless told
-otherwise.
+:class:`~tracker.io.datagrams.DatagramError` (sizes, values beyond the robot's ranges, ...);
+the joint receiver also drops, as ``time``, a datagram stamped beyond a window of its own
+clock (:data:`~tracker.io.limits.JOINT_TIME_WINDOW_S`), so that one damaged time stamp cannot
+make every later datagram look stale. Listeners bind to 127.0.0.1 unless told otherwise.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from tracker.io.datagrams import (
     encode_joints,
 )
 from tracker.io.joints import RATE_WINDOW_S, JointHistory, JointSample
+from tracker.io.limits import JOINT_TIME_WINDOW_S
 from tracker.types import Estimate, Frame
 
 Array = np.ndarray
@@ -49,6 +52,10 @@ DEFAULT_ESTIMATE_PORT = 25001
 DEFAULT_MARKER_PORT = 25002
 """Port the loop listens on for segmented-marker datagrams."""
 _RECEIVE_BUFFER_BYTES = 65536
+CLOCK_JUMP_SAMPLES = 20
+"""Consecutive datagrams that agree with each other but not with the kept history (their
+times jumped while their sequence went on) after which the sender's clock is taken to have
+jumped: the history restarts from them."""
 
 
 @dataclass
@@ -59,15 +66,17 @@ class StreamCounts:
     accepted: int = 0
     stale: int = 0  # older than the newest (sequence behind, or time not increasing)
     duplicate: int = 0  # same sequence as the newest
-    restarts: int = 0  # the sender restarted its sequence: history cleared
-    malformed: dict[str, int] = field(default_factory=dict)  # by reason
+    restarts: int = 0  # the sender restarted its sequence or its clock: history cleared
+    # Dropped by reason: the decoder's (size, magic, version, non-finite, range, points,
+    # views, sigma) and the joint receiver's "time" (stamped beyond its clock's window).
+    malformed: dict[str, int] = field(default_factory=dict)
 
     @property
     def malformed_total(self) -> int:
         return sum(self.malformed.values())
 
-    def count_malformed(self, reason: str) -> None:
-        self.malformed[reason] = self.malformed.get(reason, 0) + 1
+    def count_malformed(self, reason: str, n: int = 1) -> None:
+        self.malformed[reason] = self.malformed.get(reason, 0) + n
 
 
 def _udp_socket(host: str, port: int, rcvbuf_bytes: int) -> socket.socket:
@@ -89,8 +98,12 @@ class JointReceiver:
     A non-blocking UDP socket; :meth:`poll` drains every pending datagram (the loop calls it
     before each frame and while idle). The newest sample by sequence number wins: datagrams
     with the newest's sequence are duplicates, those behind it (or not later in time) are
-    stale, and both are dropped and counted, as are malformed ones (by reason). A sequence
-    more than ``restart_gap`` behind the newest is a restarted sender: the history is cleared.
+    stale, and both are dropped and counted, as are malformed ones (by reason) and, as
+    ``time``, those stamped later than the newest by more than the receiver's clock moved
+    between their arrivals plus ``time_window_s``. A sequence more than ``restart_gap`` behind
+    the newest is a restarted sender, and :data:`CLOCK_JUMP_SAMPLES` consecutive datagrams
+    whose times agree with each other but not with the history a sender whose clock jumped:
+    either way the history starts again (counted in ``restarts``).
     The kept history is time-ordered and bounded (``history`` samples, 2 s at 1 kHz by
     default) and :meth:`sample` interpolates values and rates linearly to any time.
 
@@ -113,6 +126,9 @@ class JointReceiver:
         cameras stamp their images with ``time.monotonic()``).
     restart_gap : int
         Sequence numbers behind the newest beyond which a datagram means a sender restart.
+    time_window_s : float
+        How much later than the newest sample (plus the arrival time elapsed) a datagram may
+        be stamped.
     rcvbuf_bytes : int
         Requested socket receive buffer.
     monotonic : callable
@@ -128,6 +144,7 @@ class JointReceiver:
         stale_after_s: float = 0.1,
         clock: str = "aligned",
         restart_gap: int = 1000,
+        time_window_s: float = JOINT_TIME_WINDOW_S,
         rcvbuf_bytes: int = 1 << 21,
         monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -141,6 +158,7 @@ class JointReceiver:
         self.history = int(history)
         self.stale_after_s = float(stale_after_s)
         self.restart_gap = int(restart_gap)
+        self.time_window_s = float(time_window_s)
         self.monotonic = monotonic
         self.counts = StreamCounts()
         # Twice the history, compacted when full: the kept samples stay one contiguous,
@@ -150,6 +168,10 @@ class JointReceiver:
         self._values = np.empty((2 * self.history, 6))
         self._start = self._end = 0
         self._newest: JointPacket | None = None
+        self._newest_arrival_s = 0.0
+        # Datagrams dropped for their time, consecutive and consistent among themselves:
+        # (packet, arrival, the reason it was counted under).
+        self._jumped: list[tuple[JointPacket, float, str]] = []
         self._buffer = bytearray(_RECEIVE_BUFFER_BYTES)
         self._sock = None if port is None else _udp_socket(host, port, rcvbuf_bytes)
 
@@ -208,7 +230,8 @@ class JointReceiver:
         return self.add(packet, arrival_s)
 
     def add(self, packet: JointPacket, arrival_s: float) -> int:
-        """Keep a decoded sample unless it is a duplicate or stale (both counted)."""
+        """Keep a decoded sample unless it is a duplicate, stale or stamped beyond the time
+        window (each counted)."""
         newest = self._newest
         if newest is not None:
             ahead = (packet.sequence - newest.sequence) % SEQUENCE_MODULUS
@@ -219,13 +242,59 @@ class JointReceiver:
             if behind > self.restart_gap:
                 self.counts.restarts += 1
                 self._start = self._end = 0
-            elif behind or packet.time_s <= newest.time_s:
+                self._jumped.clear()
+            elif behind:
                 self.counts.stale += 1
                 return 0
+            elif packet.time_s <= newest.time_s:
+                self.counts.stale += 1
+                return self._jump(packet, arrival_s, "stale")
+            elif not self._follows(newest, self._newest_arrival_s, packet, arrival_s):
+                self.counts.count_malformed("time")
+                return self._jump(packet, arrival_s, "time")
+        self._jumped.clear()
+        self._keep(packet, arrival_s)
+        return 1
+
+    def _follows(self, first: JointPacket, first_arrival_s: float, then, arrival_s) -> bool:
+        """Whether ``then`` is stamped after ``first`` by no more than the receiver's clock
+        moved between their arrivals plus the window (a datagram is never received before it
+        is sent; it may wait in the network or the socket buffer)."""
+        elapsed_s = max(arrival_s - first_arrival_s, 0.0)
+        return first.time_s < then.time_s <= first.time_s + elapsed_s + self.time_window_s
+
+    def _jump(self, packet: JointPacket, arrival_s: float, reason: str) -> int:
+        """A datagram dropped for its time (already counted under ``reason``): if the last
+        :data:`CLOCK_JUMP_SAMPLES` such datagrams follow each other, the sender's clock has
+        jumped: start the history again from them. Returns how many were kept."""
+        if self._jumped:
+            last, last_arrival_s, _ = self._jumped[-1]
+            ahead = (packet.sequence - last.sequence) % SEQUENCE_MODULUS
+            if not (0 < ahead <= self.restart_gap) or not self._follows(
+                last, last_arrival_s, packet, arrival_s
+            ):
+                self._jumped.clear()
+        self._jumped.append((packet, arrival_s, reason))
+        if len(self._jumped) < CLOCK_JUMP_SAMPLES:
+            return 0
+        jumped, self._jumped = self._jumped, []
+        self.counts.restarts += 1
+        self._start = self._end = 0
+        for kept, kept_arrival_s, counted_as in jumped:
+            if counted_as == "stale":
+                self.counts.stale -= 1
+            else:
+                self.counts.count_malformed(counted_as, -1)
+            self._keep(kept, kept_arrival_s)
+        if not self.counts.malformed.get("time", 1):
+            del self.counts.malformed["time"]
+        return len(jumped)
+
+    def _keep(self, packet: JointPacket, arrival_s: float) -> None:
         self._append(packet, arrival_s)
         self._newest = packet
+        self._newest_arrival_s = arrival_s
         self.counts.accepted += 1
-        return 1
 
     def _append(self, packet: JointPacket, arrival_s: float) -> None:
         if self._end == self._sender_s.size:

@@ -7,12 +7,25 @@ The same :class:`~tracker.reconstruction.Reconstructor` and estimators as replay
 OpenIGTLink, rerun, recordings, CSV) differ. Joint values come from a
 :class:`~tracker.io.udp.JointReceiver`, interpolated to each image time stamp.
 
+Real time (docs/live.md, "Real time"): the loop's own thread does only what the controller
+waits for: segmentation (in a region around the markers predicted from the last estimate),
+reconstruction, the estimator and the sinks given to it (the estimate datagram); every other
+output runs behind a :class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source
+(cameras) is captured in its own thread and the loop always takes the newest frame
+(:class:`~tracker.live.sources.NewestOnly`): the older ones are dropped and counted, never
+processed late.
+
 Faults, each counted in the :class:`LiveSummary`:
 
-- frames whose time does not increase (duplicates, out of order) are dropped;
-- frames whose joint values are stale (the joint stream stopped) or missing are flagged
-  (:class:`LiveStatus`) and the estimator gets a predict-only observation (no measurement),
-  never stale joints with fresh markers;
+- frames whose time does not increase (duplicates, out of order) are dropped; so are frames
+  whose time is implausible (not finite, ahead of this machine's clock for a source stamped
+  with it, or far ahead of the stream), counted by reason. They do not move the stream's
+  time on, so one bad time stamp cannot block the frames after it; a run of consistent such
+  frames is a new time base (a restarted sender): the estimator starts again;
+- frames without joint values at their time (the joint stream stopped, none yet, the time
+  before the kept history or past the newest sample by more than a short hold) are flagged
+  (:class:`LiveStatus`); the estimator gets a predict-only observation (never stale joints
+  with fresh markers) and the estimate sent is not valid (NaN, valid bit clear);
 - a frame that cannot be segmented or reconstructed is dropped and reported once per cause;
 - an estimator error gives an invalid estimate (NaN) for that frame, reported once;
 - a sink (:mod:`tracker.live.sinks`) that raises is reported once and disabled; the loop
@@ -31,7 +44,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,11 +52,23 @@ import numpy as np
 from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
 from tracker.io.udp import JointReceiver, StreamCounts
-from tracker.live.sinks import PREDICT_ONLY, LiveResult, LiveStatus, Sink
+from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
+from tracker.live.sources import NewestOnly
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag, Frame, Observation
 
 Array = np.ndarray
+
+MAX_HOLD_S = 0.02
+"""How far past the newest joint sample an image may be and still use its values, s."""
+MAX_TIME_JUMP_S = 5.0
+"""How far a frame time may run ahead of the stream (beyond the time passed here), s."""
+MAX_FUTURE_S = 1.0
+"""How far ahead of this machine's clock a frame stamped with it may be, s."""
+REBASE_AFTER = 5
+"""Consistent frames rejected for their time in a row that make a new time base."""
+ROI_POINTS = 12
+"""Points along the predicted catheter that outline the segmentation's region of interest."""
 
 
 # ---------------------------------------------------------------------------- bookkeeping
@@ -74,27 +99,50 @@ class LatencyRecorder:
 class LiveSummary:
     """What a run did (counts of frames and datagrams, latencies, failures)."""
 
-    frames_received: int = 0
+    frames_received: int = 0  # taken from the source by the loop
     frames_processed: int = 0
+    frames_superseded: int = 0  # live source: replaced by a newer frame before the loop was free
     frames_out_of_order: int = 0
     frames_duplicate: int = 0
+    frames_bad_time: dict[str, int] = field(default_factory=dict)  # by reason
+    time_rebases: int = 0
     frames_rejected: int = 0  # could not be segmented or reconstructed
     frames_stale_joints: int = 0
     frames_no_joints: int = 0
     frames_clamped_joints: int = 0
+    frames_extrapolated_joints: int = 0
     frames_valid: int = 0  # with a finite estimate
     estimator_errors: int = 0
     joints: StreamCounts | None = None
     markers: StreamCounts | None = None
     sink_failures: dict[str, str] = field(default_factory=dict)
+    sink_dropped: dict[str, int] = field(default_factory=dict)  # queued sinks behind
+    sink_stalls: dict[str, int] = field(default_factory=dict)
     latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
-    cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> all sinks done
+    cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
     duration_s: float = 0.0
     stop_reason: str = ""
 
     @property
     def frames_dropped(self) -> int:
-        return self.frames_out_of_order + self.frames_duplicate + self.frames_rejected
+        """Frames never processed: superseded, out of order, duplicate, bad time, unusable."""
+        return (
+            self.frames_superseded
+            + self.frames_out_of_order
+            + self.frames_duplicate
+            + sum(self.frames_bad_time.values())
+            + self.frames_rejected
+        )
+
+    @property
+    def frames_without_joints(self) -> int:
+        """Frames processed predict-only for lack of joint values at their time."""
+        return (
+            self.frames_stale_joints
+            + self.frames_no_joints
+            + self.frames_clamped_joints
+            + self.frames_extrapolated_joints
+        )
 
     @property
     def interrupted(self) -> bool:
@@ -102,15 +150,21 @@ class LiveSummary:
 
     def lines(self) -> list[str]:
         """The summary as a few human-readable lines."""
+        bad_time = "".join(f", {n} {reason}" for reason, n in sorted(self.frames_bad_time.items()))
         out = [
             f"live loop ended ({self.stop_reason}) after {self.duration_s:.1f} s:"
             f" {self.frames_processed} of {self.frames_received} frames processed,"
             f" {self.frames_valid} with an estimate",
-            f"  dropped: {self.frames_out_of_order} out of order, {self.frames_duplicate}"
-            f" duplicate, {self.frames_rejected} unusable",
-            f"  joints: {self.frames_stale_joints} frames with stale joints,"
-            f" {self.frames_no_joints} without joints, {self.frames_clamped_joints} clamped",
+            f"  dropped: {self.frames_superseded} replaced by a newer frame while the loop was"
+            f" busy, {self.frames_out_of_order} out of order, {self.frames_duplicate}"
+            f" duplicate{bad_time}, {self.frames_rejected} unusable",
+            f"  without joints (predict only, not valid): {self.frames_without_joints} frames"
+            f" ({self.frames_stale_joints} stale, {self.frames_no_joints} before the first"
+            f" sample, {self.frames_clamped_joints} before the history,"
+            f" {self.frames_extrapolated_joints} past the newest sample)",
         ]
+        if self.time_rebases:
+            out.append(f"  new time base: {self.time_rebases} (the estimator started again)")
         for label, counts in (("joint", self.joints), ("marker", self.markers)):
             if counts is not None:
                 bad = ", ".join(f"{k} {v}" for k, v in sorted(counts.malformed.items())) or "none"
@@ -125,9 +179,15 @@ class LiveSummary:
         if lat:
             out.append(
                 f"  latency image -> estimate: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms,"
-                f" max {lat['max']:.2f} ms; -> all sinks done: p50 {cyc['p50']:.2f} ms,"
+                f" max {lat['max']:.2f} ms; -> loop done: p50 {cyc['p50']:.2f} ms,"
                 f" p99 {cyc['p99']:.2f} ms"
             )
+        for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
+            dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
+            if dropped or stalls:
+                out.append(
+                    f"  sink {name} fell behind: {dropped} frames dropped, {stalls} waits"
+                )
         for name, failure in self.sink_failures.items():
             out.append(f"  sink {name} disabled: {failure}")
         return out
@@ -176,6 +236,23 @@ class _StopRequest:
         self._previous.clear()
 
 
+def _arrivals(
+    source: Iterable, clock: Callable[[], float]
+) -> Iterator[tuple[object, float] | None]:
+    """(item, the time it left the source) of every item; ``None`` as it comes."""
+    for item in source:
+        yield None if item is None else (item, clock())
+
+
+_JOINT_STATUS = {
+    JointStatus.OK: LiveStatus.NONE,
+    JointStatus.HELD: LiveStatus.NONE,  # up to the loop's hold; past it, extrapolated
+    JointStatus.CLAMPED: LiveStatus.JOINTS_CLAMPED,
+    JointStatus.STALE: LiveStatus.STALE_JOINTS,
+    JointStatus.NONE: LiveStatus.NO_JOINTS,
+}
+
+
 # ------------------------------------------------------------------------------------ loop
 class LiveTracker:
     """One frame in, one estimate out to every sink.
@@ -187,19 +264,32 @@ class LiveTracker:
     estimator : Estimator
         From :func:`tracker.estimators.make_estimator` (``"ukf"`` for live tracking).
     sinks : sequence of Sink
-        Called in order (:mod:`tracker.live.sinks`); put the estimate sender first, it is the
-        one the latency is for.
+        Called in order on the loop's thread (:mod:`tracker.live.sinks`): put the estimate
+        sender first, it is the one the latency is for, and every slow output behind a
+        :class:`~tracker.live.sinks.QueuedSink`.
     joints : JointReceiver, optional
         Joint values for every frame, interpolated to its time; frames that carry their own
         joint values (simulation, recordings) keep them when no receiver is given.
     segmenter : optional
-        Anything with ``segment(images)`` (one image per view) returning an object with
-        ``uv`` and ``cov`` (one array per view; :class:`PairSegmenter`); needed when the
-        source yields images.
+        Anything with ``segment(images, predicted_px=None)`` (one image per view) returning
+        an object with ``uv`` and ``cov`` (one array per view; :class:`PairSegmenter`);
+        needed when the source yields images. ``predicted_px`` (one array of points per
+        view, px) is where the last estimate puts the catheter at this frame's joints: the
+        segmenter searches around it first.
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
         Local clock for the latencies.
+    max_hold_s : float
+        An image this much past the newest joint sample still uses its values; later, the
+        frame is flagged ``JOINTS_EXTRAPOLATED`` (s).
+    max_time_jump_s : float
+        A frame time further ahead of the stream than this plus the time passed here since
+        its last frame is implausible (sources not stamped with this machine's clock), s.
+    switch_interval_s : float or None
+        The interpreter's thread switch interval during :meth:`run` (None: unchanged). A
+        short one bounds how long the loop waits for the interpreter when another thread
+        (a queued sink, the capture) holds it.
     """
 
     def __init__(
@@ -212,6 +302,9 @@ class LiveTracker:
         segmenter=None,
         report: Callable[[str], None] = _report_stderr,
         monotonic: Callable[[], float] = time.monotonic,
+        max_hold_s: float = MAX_HOLD_S,
+        max_time_jump_s: float = MAX_TIME_JUMP_S,
+        switch_interval_s: float | None = 0.0005,
     ) -> None:
         self.reconstructor = reconstructor
         self.estimator = estimator
@@ -219,11 +312,25 @@ class LiveTracker:
         self.segmenter = segmenter
         self.report = report
         self.monotonic = monotonic
-        self._sinks = [_SinkEntry(s, _sink_name(s)) for s in sinks]
+        self.max_hold_s = float(max_hold_s)
+        self.max_time_jump_s = float(max_time_jump_s)
+        self.switch_interval_s = switch_interval_s
+        self.idle = threading.Event()  # set while the loop waits for a frame
+        self.idle.set()
+        self._sinks: list[_SinkEntry] = []
+        for sink in sinks:
+            self.add_sink(sink)
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
         self.latency = LatencyRecorder()
         self.cycle = LatencyRecorder()
         self._last_time_s: float | None = None
+        self._last_arrival_s: float | None = None
+        self._odd_times: list[float] = []  # consecutive frames rejected for their time
+        self._last_delta_L_rad: float | None = None  # of the last valid estimate (ROI)
+        self._roi_arclengths = np.linspace(
+            0.0, reconstructor.catheter.length_mm, ROI_POINTS
+        )
+        self._capture: NewestOnly | None = None
         self._reported: set[str] = set()
         self._closed = False
         self.time_is_monotonic = False
@@ -233,23 +340,80 @@ class LiveTracker:
         """The sinks still enabled."""
         return [e.sink for e in self._sinks if e.enabled]
 
-    def add_sink(self, sink: Sink) -> None:
-        """Call ``sink`` after the others (before the run starts)."""
-        self._sinks.append(_SinkEntry(sink, _sink_name(sink)))
+    def add_sink(self, sink: Sink, before: Sink | None = None) -> None:
+        """Call ``sink`` after the others, or just before ``before`` (before the run starts).
+
+        Sinks are closed in the same order: a sink that hands work to a queued sink's thread
+        (:meth:`QueuedSink.submit`) goes before it.
+        """
+        if isinstance(sink, QueuedSink):
+            sink.idle = self.idle
+        entry = _SinkEntry(sink, _sink_name(sink))
+        index = next((k for k, e in enumerate(self._sinks) if e.sink is before), None)
+        if before is not None and index is not None:
+            self._sinks.insert(index, entry)
+        else:
+            self._sinks.append(entry)
 
     def _report_once(self, key: str, message: str) -> None:
         if key not in self._reported:
             self._reported.add(key)
             self.report(message)
 
-    # ------------------------------------------------------------------ one frame
-    def _markers(self, item) -> tuple[SegmentedMarkers, tuple[Array, ...] | None]:
-        if isinstance(item, SegmentedMarkers):
-            return item, None
-        time_s, images = item
-        seg = self.segmenter.segment(images)
-        return SegmentedMarkers(time_s, tuple(seg.uv), tuple(seg.cov)), tuple(images)
+    # ------------------------------------------------------------------ time stamps
+    def _admit(self, time_s: float, now: float) -> bool:
+        """Whether a frame's time is plausible and after the last frame's (else counted)."""
+        s = self.summary
+        reason = None
+        if not math.isfinite(time_s):
+            reason = "without a finite time"
+        elif self.time_is_monotonic and time_s > now + MAX_FUTURE_S:
+            reason = "stamped in the future"
+        if reason is not None:
+            s.frames_bad_time[reason] = s.frames_bad_time.get(reason, 0) + 1
+            self._report_once(f"time:{reason}", f"frames {reason} are dropped ({time_s} s)")
+            return False
+        last = self._last_time_s
+        if last is None:
+            return self._accept_time(time_s, now)
+        if time_s == last:
+            s.frames_duplicate += 1
+            return False
+        allowed_s = self.max_time_jump_s + (now - self._last_arrival_s)
+        behind = time_s < last
+        if not behind and (self.time_is_monotonic or time_s - last <= allowed_s):
+            return self._accept_time(time_s, now)
+        # A run of consistent rejected times is a sender that restarted its clock.
+        odd = self._odd_times
+        if odd and not 0 < time_s - odd[-1] <= self.max_time_jump_s:
+            odd.clear()
+        odd.append(time_s)
+        if len(odd) < REBASE_AFTER:
+            if behind:
+                s.frames_out_of_order += 1
+            else:
+                reason = "too far ahead of the stream"
+                s.frames_bad_time[reason] = s.frames_bad_time.get(reason, 0) + 1
+                self._report_once(
+                    f"time:{reason}", f"a frame {reason} was dropped ({time_s} s after {last} s)"
+                )
+            return False
+        s.time_rebases += 1
+        self.report(
+            f"the frame times moved from {last} s to {time_s} s and stayed there: a new time"
+            " base, the estimator starts again"
+        )
+        self.estimator.reset()
+        self.reconstructor.reset()
+        self._last_delta_L_rad = None
+        return self._accept_time(time_s, now)
 
+    def _accept_time(self, time_s: float, now: float) -> bool:
+        self._last_time_s, self._last_arrival_s = time_s, now
+        self._odd_times.clear()
+        return True
+
+    # ------------------------------------------------------------------ one frame
     def _joints_at(
         self, time_s: float, frame: Frame | None
     ) -> tuple[Array, Array | None, LiveStatus]:
@@ -259,15 +423,31 @@ class LiveTracker:
             return np.zeros(3), None, LiveStatus.NO_JOINTS
         self.joints.poll()
         sample = self.joints.sample(time_s)
-        status = {
-            JointStatus.OK: LiveStatus.NONE,
-            JointStatus.HELD: LiveStatus.NONE,
-            JointStatus.CLAMPED: LiveStatus.JOINTS_CLAMPED,
-            JointStatus.STALE: LiveStatus.STALE_JOINTS,
-            JointStatus.NONE: LiveStatus.NO_JOINTS,
-        }[sample.status]
+        status = _JOINT_STATUS[sample.status]
+        if sample.status is JointStatus.HELD and sample.age_s > self.max_hold_s:
+            status = LiveStatus.JOINTS_EXTRAPOLATED
         q = sample.q if np.all(np.isfinite(sample.q)) else np.zeros(3)
         return q, sample.q_dot, status
+
+    def _predicted_px(self, q: Array) -> tuple[Array, ...] | None:
+        """The catheter at the last valid estimate and these joints, in every view, px."""
+        if self._last_delta_L_rad is None:
+            return None
+        r = self.reconstructor
+        try:
+            points_b = r.catheter.backbone(q, self._last_delta_L_rad, self._roi_arclengths)
+        except ValueError:
+            return None
+        points_w = r.pose.world_from_base(points_b)
+        return tuple(view.project(points_w) for view in r.rig.views)
+
+    def _segment(self, time_s: float, images, q: Array) -> SegmentedMarkers:
+        predicted = self._predicted_px(q)
+        if predicted is None:
+            seg = self.segmenter.segment(images)
+        else:
+            seg = self.segmenter.segment(images, predicted)
+        return SegmentedMarkers(time_s, tuple(seg.uv), tuple(seg.cov))
 
     def step(self, item, received_s: float | None = None) -> LiveResult | None:
         """Process one source item; None when it was dropped (counted in ``summary``).
@@ -279,39 +459,39 @@ class LiveTracker:
             Monotonic time the item left the source (latency reference unless the source's
             times are monotonic stamps); now if not given.
         """
+        self.idle.clear()
+        try:
+            return self._step(item, received_s)
+        finally:
+            self.idle.set()
+
+    def _step(self, item, received_s: float | None) -> LiveResult | None:
         s = self.summary
-        received_s = self.monotonic() if received_s is None else received_s
+        now = self.monotonic()
+        received_s = now if received_s is None else received_s
         s.frames_received += 1
         is_images = isinstance(item, tuple)  # ImageSet or a plain (time, images)
         if is_images and self.segmenter is None:
             raise ValueError("the source yields images but the live loop has no segmenter")
         time_s = float(item[0] if is_images else item.time_s)
-        if not math.isfinite(time_s):
-            s.frames_rejected += 1
-            self._report_once("time", "a frame without a finite time stamp was dropped")
+        if not self._admit(time_s, now):
             return None
-        last = self._last_time_s
-        if last is not None and time_s <= last:
-            if time_s == last:
-                s.frames_duplicate += 1
-            else:
-                s.frames_out_of_order += 1
-            return None
-        self._last_time_s = time_s
 
         frame = item if isinstance(item, Frame) else None
         try:
-            if frame is None:
-                markers, images = self._markers(item)
             q, q_dot, status = self._joints_at(time_s, frame)
             if frame is None:
+                if is_images:
+                    markers = self._segment(time_s, item[1], q)
+                else:
+                    markers = item
                 frame = markers.frame(q, q_dot)
-                if images is not None:
-                    frame = dataclasses.replace(frame, images=images)
+                if is_images:
+                    frame = dataclasses.replace(frame, images=tuple(item[1]))
             elif self.joints is not None:
                 frame = dataclasses.replace(frame, q=q, q_dot=q_dot)
             if status & PREDICT_ONLY:
-                # Predict only: markers with stale joints would pull the estimate wrong.
+                # Predict only: markers with joints not of their time would pull it wrong.
                 self.reconstructor.reset()
                 observation = Observation(time_s=time_s, q=q)
             else:
@@ -336,12 +516,24 @@ class LiveTracker:
                 q_r_rad=float(q[0]),
                 flags=Flag.NO_MEASUREMENT,
             )
+        if status & INVALID and estimate.valid:
+            # Held by the estimator, but not of this frame's joints: the controller must not
+            # use it (valid bit clear); the flags say why.
+            estimate = dataclasses.replace(
+                estimate,
+                delta_L_rad=math.nan,
+                std_rad=math.nan,
+                flags=estimate.flags | Flag.NO_MEASUREMENT,
+            )
+        elif estimate.valid and not status:
+            self._last_delta_L_rad = float(estimate.delta_L_rad)
 
         s.frames_processed += 1
         s.frames_valid += int(estimate.valid)
         s.frames_stale_joints += int(bool(status & LiveStatus.STALE_JOINTS))
         s.frames_no_joints += int(bool(status & LiveStatus.NO_JOINTS))
         s.frames_clamped_joints += int(bool(status & LiveStatus.JOINTS_CLAMPED))
+        s.frames_extrapolated_joints += int(bool(status & LiveStatus.JOINTS_EXTRAPOLATED))
         reference = time_s if self.time_is_monotonic else received_s
         latency_s = self.monotonic() - reference
         self.latency.add(latency_s)
@@ -362,6 +554,19 @@ class LiveTracker:
                 self.report(f"sink {entry.name} failed and is disabled ({failure})")
 
     # ------------------------------------------------------------------ the run
+    def _superseded(self) -> None:
+        """Bring the count of frames a newer one replaced up to date; report the first."""
+        capture = self._capture
+        if capture is None or capture.dropped == self.summary.frames_superseded:
+            return
+        self.summary.frames_superseded = capture.dropped
+        cycle = self.cycle.percentiles_ms()["p50"]
+        self._report_once(
+            "superseded",
+            f"frames come faster than the loop takes them (it needs {cycle:.1f} ms per frame):"
+            " only the newest is processed, the others are dropped and counted",
+        )
+
     def run(
         self,
         source: Iterable,
@@ -369,13 +574,15 @@ class LiveTracker:
         idle_timeout_s: float | None = None,
         max_frames: int | None = None,
         handle_signals: bool = True,
+        on_start: Callable[[], None] | None = None,
     ) -> LiveSummary:
         """Process the source until it ends, idles, reaches ``max_frames`` or is interrupted.
 
-        Closes every sink, the joint receiver and the source (if it has ``close()``) on the
-        way out, whatever ended the run, and returns the summary. Exceptions other than
-        Ctrl-C (e.g. a source that yields images to a loop without segmenter) propagate
-        after that clean-up.
+        A ``live`` source (:mod:`tracker.live.sources`) is captured in its own thread and
+        the loop takes its newest item each time (:class:`NewestOnly`). Closes every sink,
+        the joint receiver and the source (if it has ``close()``) on the way out, whatever
+        ended the run, and returns the summary. Exceptions other than Ctrl-C (e.g. a source
+        that yields images to a loop without segmenter) propagate after that clean-up.
 
         Parameters
         ----------
@@ -387,18 +594,32 @@ class LiveTracker:
             End after this many processed frames.
         handle_signals : bool
             Turn SIGINT / SIGTERM into a clean stop (main thread only).
+        on_start : callable, optional
+            Called once Ctrl-C stops the run cleanly, before the first item (to tell the
+            user what runs).
         """
+        if getattr(source, "live", False) and not isinstance(source, NewestOnly):
+            source = NewestOnly(source, monotonic=self.monotonic)
+        self._capture = source if isinstance(source, NewestOnly) else None
         self.time_is_monotonic = bool(getattr(source, "time_is_monotonic", False))
-        if self.summary.markers is None and hasattr(source, "counts"):
+        if self.summary.markers is None and getattr(source, "counts", None) is not None:
             self.summary.markers = source.counts
         stop = _StopRequest()
         if handle_signals:
             stop.install()
+        switch_interval_s = sys.getswitchinterval()
+        if self.switch_interval_s is not None:
+            sys.setswitchinterval(self.switch_interval_s)
         started = self.monotonic()
         last_item_s = started
         reason = "source exhausted"
         try:
-            iterator = iter(source)
+            if on_start is not None:
+                on_start()
+            if self._capture is not None:
+                entries = self._capture.items()
+            else:
+                entries = _arrivals(source, self.monotonic)
             while True:
                 if stop.requested:
                     reason = "interrupted"
@@ -407,12 +628,12 @@ class LiveTracker:
                     reason = "max frames"
                     break
                 try:
-                    item = next(iterator)
+                    entry = next(entries)
                 except StopIteration:
                     reason = getattr(source, "stop_reason", None) or "source exhausted"
                     break
                 now = self.monotonic()
-                if item is None:
+                if entry is None:
                     if self.joints is not None:
                         self.joints.poll()
                     if idle_timeout_s is not None and now - last_item_s > idle_timeout_s:
@@ -423,11 +644,13 @@ class LiveTracker:
                 if stop.requested:
                     reason = "interrupted"
                     break
-                self.step(item, now)
+                self._superseded()
+                self.step(*entry)
         except KeyboardInterrupt:
             reason = "interrupted"
         finally:
             stop.closing = True
+            sys.setswitchinterval(switch_interval_s)
             self.summary.stop_reason = reason
             self.summary.duration_s = self.monotonic() - started
             try:
@@ -437,18 +660,26 @@ class LiveTracker:
         return self.summary
 
     def close(self, source: object | None = None) -> None:
-        """Close every sink (even disabled ones), the joint receiver and the source."""
+        """Close every sink (even disabled ones; queued sinks finish their queue first), the
+        joint receiver and the source."""
         if self._closed:
             return
         self._closed = True
+        s = self.summary
         for entry in self._sinks:
             try:
                 entry.sink.close()
             except Exception as exc:  # one failing close must not keep the others open
-                self.summary.sink_failures.setdefault(
+                s.sink_failures.setdefault(
                     entry.name, f"close failed: {type(exc).__name__}: {exc}"
                 )
                 self.report(f"sink {entry.name} failed to close ({exc})")
+            if isinstance(entry.sink, QueuedSink):
+                queued = entry.sink
+                s.sink_dropped[entry.name] = queued.dropped
+                s.sink_stalls[entry.name] = queued.stalls
+                if queued.failure is not None:
+                    s.sink_failures.setdefault(entry.name, queued.failure)
         closers = [getattr(source, "close", None)]
         if self.joints is not None:
             closers.append(self.joints.close)
@@ -458,8 +689,9 @@ class LiveTracker:
                     closer()
                 except OSError as exc:
                     self.report(f"closing failed: {exc}")
-        self.summary.latency_ms = self.latency.percentiles_ms()
-        self.summary.cycle_ms = self.cycle.percentiles_ms()
+        self._superseded()
+        s.latency_ms = self.latency.percentiles_ms()
+        s.cycle_ms = self.cycle.percentiles_ms()
 
 
 def run_live(
@@ -474,10 +706,17 @@ def run_live(
     max_frames: int | None = None,
     report: Callable[[str], None] = _report_stderr,
     handle_signals: bool = True,
+    monotonic: Callable[[], float] = time.monotonic,
 ) -> LiveSummary:
     """Build a :class:`LiveTracker` and run it over ``source``; returns the summary."""
     tracker = LiveTracker(
-        reconstructor, estimator, sinks, joints=joints, segmenter=segmenter, report=report
+        reconstructor,
+        estimator,
+        sinks,
+        joints=joints,
+        segmenter=segmenter,
+        report=report,
+        monotonic=monotonic,
     )
     return tracker.run(
         source, idle_timeout_s=idle_timeout_s, max_frames=max_frames, handle_signals=handle_signals

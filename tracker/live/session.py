@@ -33,7 +33,7 @@ from tracker.io.udp import (
     JointReceiver,
 )
 from tracker.live.loop import LiveSummary, LiveTracker
-from tracker.live.sinks import CsvSink, RecordingSink, Sink
+from tracker.live.sinks import CsvSink, QueuedSink, RecordingSink, Sink
 from tracker.reconstruction import Reconstructor
 from tracker.viewer.layout import default_blueprint
 from tracker.viewer.output import RerunOutput, open_rerun_output
@@ -80,6 +80,12 @@ class SessionSettings:
     keep_serving : bool
         With ``--serve``, keep the rerun stream open after the run, for web viewers to look
         (:meth:`LiveSession.close` ends it).
+    viewer_queue, igtl_queue : int
+        Frames queued for the rerun output and for OpenIGTLink; when full, the oldest is
+        dropped (counted).
+    record_queue : int
+        Frames queued for the recording and the CSV file, which never drop: when full, the
+        loop waits (a loud warning, counted).
     """
 
     estimator: str = "ukf"
@@ -96,10 +102,16 @@ class SessionSettings:
     jpeg_quality: int | None = 80
     application_id: str = "cathtrack"
     keep_serving: bool = False
+    viewer_queue: int = 32
+    igtl_queue: int = 8
+    record_queue: int = 512
 
     def __post_init__(self) -> None:
         if self.image_every < 1:
             raise ValueError(f"image_every must be >= 1, got {self.image_every}")
+        for name in ("viewer_queue", "igtl_queue", "record_queue"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
 class LiveSession:
@@ -108,9 +120,12 @@ class LiveSession:
     Opens, in this order: the estimate sender, the OpenIGTLink server and the rerun outputs
     (a port in use fails before anything listens), the joint receiver, the recording and the
     CSV file; if one fails, what was already open is closed again. The sinks run in that
-    order (the estimate sender first: the latency is measured for it). From then on the loop
-    owns them: :meth:`run` closes them all, and so does :meth:`close` (or leaving a ``with``
-    block) when the run never started.
+    order. Only the estimate sender runs on the loop's thread (the latency is measured for
+    it); every other output is a :class:`~tracker.live.sinks.QueuedSink` with its own thread
+    and queue (sizes in the settings): the viewer and OpenIGTLink drop their oldest frame when
+    they fall behind, the recording and the CSV file never drop. From then on the loop owns
+    them: :meth:`run` closes them all, and so does :meth:`close` (or leaving a ``with`` block)
+    when the run never started.
 
     Parameters
     ----------
@@ -141,7 +156,9 @@ class LiveSession:
     igtl : IgtlSink or None
     output : tracker.viewer.output.RerunOutput or None
     viewer : RerunSink or None
-        The rerun stream, for sinks that log more to it.
+        The rerun stream, for sinks that log more to it...
+    viewer_thread : QueuedSink or None
+        ...from its thread only (:meth:`QueuedSink.submit`): rerun's time is per thread.
     inputs, outputs : list of str
         What the session listens to and sends to, for the user.
     """
@@ -172,6 +189,7 @@ class LiveSession:
         self.igtl: IgtlSink | None = None
         self.output: RerunOutput | None = None
         self.viewer: RerunSink | None = None
+        self.viewer_thread: QueuedSink | None = None
         self.inputs: list[str] = []
         self.outputs: list[str] = []
         sinks: list[Sink] = []
@@ -194,7 +212,7 @@ class LiveSession:
                     report=report,
                 )
                 stack.callback(self.igtl.close)
-                sinks.append(self.igtl)
+                sinks.append(QueuedSink(self.igtl, settings.igtl_queue, report=report))
                 self.outputs.append(f"OpenIGTLink on tcp://{self.igtl.host}:{self.igtl.port}")
             if rerun_args is not None:
                 blueprint = default_blueprint(
@@ -229,7 +247,8 @@ class LiveSession:
                     close_stream=not (settings.keep_serving and self.output.served_url),
                 )
                 stack.callback(viewer_sink.close)  # stops the viewer watch too
-                sinks.append(viewer_sink)
+                self.viewer_thread = QueuedSink(viewer_sink, settings.viewer_queue, report=report)
+                sinks.append(self.viewer_thread)
                 self.outputs.extend(f"rerun {target}" for target in self.output.targets)
 
             # ---- inputs
@@ -258,12 +277,17 @@ class LiveSession:
                 if segmenter is not None:
                     for view, background in zip(VIEWS, segmenter.backgrounds, strict=True):
                         writer.write_background(view, background)
-                sinks.append(RecordingSink(writer, settings.estimator, joints=self.joints))
+                recording = RecordingSink(writer, settings.estimator, joints=self.joints)
+                sinks.append(
+                    QueuedSink(recording, settings.record_queue, keep_all=True, report=report)
+                )
                 self.outputs.append(f"recording {settings.record_path}")
             if settings.csv_path is not None:
                 csv_sink = CsvSink(settings.csv_path)
                 stack.callback(csv_sink.close)
-                sinks.append(csv_sink)
+                sinks.append(
+                    QueuedSink(csv_sink, settings.record_queue, keep_all=True, report=report)
+                )
                 self.outputs.append(f"CSV {settings.csv_path}")
 
             self.tracker = LiveTracker(
@@ -289,13 +313,13 @@ class LiveSession:
         """Run the loop over ``source`` until it ends, idles, has ``max_frames`` or Ctrl-C.
 
         Closes every sink, the joint receiver and the source; returns the loop's summary.
-        ``announce`` is called first (to tell the user what runs): a Ctrl-C from then on
-        ends the run with its summary.
+        ``announce`` is called once Ctrl-C stops the run cleanly (to tell the user what runs):
+        a Ctrl-C from then on ends the run with its summary, whenever it comes.
         """
         try:
-            if announce is not None:
-                announce()
-            return self.tracker.run(source, idle_timeout_s=idle_timeout_s, max_frames=max_frames)
+            return self.tracker.run(
+                source, idle_timeout_s=idle_timeout_s, max_frames=max_frames, on_start=announce
+            )
         except KeyboardInterrupt:  # Ctrl-C before the loop took it over: close all the same
             self.tracker.close(source)
             self.tracker.summary.stop_reason = "interrupted"

@@ -13,6 +13,12 @@ stamps of this process (live cameras): the loop then measures latency from the i
 stamp; otherwise from the moment the item left the source. A source may have ``close()``;
 the loop calls it on exit.
 
+A source that delivers at its own pace, whether the loop is ready or not (cameras, a video
+file played at its frame rate, simulated cameras), sets ``live = True``: the loop then runs it
+in its own capture thread (:class:`NewestOnly`) and always takes the newest item, dropping
+(and counting) the ones a newer item replaced before the loop was free. Sources without it
+(recordings, simulations, markers over UDP) have every item processed, in order.
+
 Sources here: two cameras or video files through OpenCV (:class:`VideoSource`), segmented
 markers over UDP (:class:`UdpMarkerSource`), the frames of a recording
 (:class:`RecordingSource`), and :class:`PacedSource`, which releases any time-stamped items at
@@ -21,6 +27,7 @@ real time. Simulated sessions are in :mod:`replay.simulation.sources`.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -47,6 +54,130 @@ class ImageSet(NamedTuple):
 
 
 Item = ImageSet | SegmentedMarkers | Frame | None
+
+
+# ----------------------------------------------------------------------------- capture
+class NewestOnly:
+    """A live source run in its own capture thread; the loop takes only the newest item.
+
+    A camera delivers at its own pace whether the loop is ready or not. Here the source is
+    iterated in a capture thread that puts every item, stamped with its arrival time, into a
+    one-item slot; the loop takes what is in the slot when it is free. An item replaced
+    before the loop took it is dropped and counted in ``dropped``: the loop never works
+    through a backlog, so a frame waits at most the processing of the one before it.
+
+    Parameters
+    ----------
+    source : iterable
+        Any source of :mod:`tracker.live.sources` (``None`` items are ignored here).
+    poll_s : float
+        :meth:`items` yields ``None`` after this long without a new item, so that the loop
+        can drain the joint socket, honour Ctrl-C and time out while idle.
+    monotonic : callable
+        Clock of the arrival stamps (the loop's).
+
+    Attributes
+    ----------
+    captured, dropped : int
+        Items the source delivered, and those a newer one replaced before the loop took them.
+    stop_reason : str or None
+        The source's, once it has ended.
+    """
+
+    def __init__(
+        self,
+        source: Iterable,
+        poll_s: float = 0.002,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.source = source
+        self.poll_s = float(poll_s)
+        self.monotonic = monotonic
+        self.time_is_monotonic = bool(getattr(source, "time_is_monotonic", False))
+        self.captured = 0
+        self.dropped = 0
+        self.stop_reason: str | None = None
+        self._slot: tuple[object, float] | None = None
+        self._ended = False
+        self._error: BaseException | None = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._capture, name="capture", daemon=True)
+
+    @property
+    def counts(self):
+        """The source's datagram counts, if it has them."""
+        return getattr(self.source, "counts", None)
+
+    def _capture(self) -> None:
+        try:
+            for item in self.source:
+                if self._stop.is_set():
+                    return
+                if item is None:
+                    continue
+                arrival_s = self.monotonic()
+                with self._cond:
+                    self.captured += 1
+                    self.dropped += self._slot is not None
+                    self._slot = (item, arrival_s)
+                    self._cond.notify()
+            self.stop_reason = getattr(self.source, "stop_reason", None)
+        except BaseException as exc:  # handed to the loop's thread by items()
+            self._error = exc
+        finally:
+            with self._cond:
+                self._ended = True
+                self._cond.notify()
+
+    def start(self) -> NewestOnly:
+        """Start capturing (:meth:`items` starts it too)."""
+        if not self._thread.is_alive() and not self._ended:
+            self._thread.start()
+        return self
+
+    def take(self, timeout_s: float) -> tuple[object, float] | None:
+        """The newest item and its arrival time, or None after ``timeout_s`` without one.
+
+        Raises StopIteration once the source has ended and its last item was taken, and the
+        source's own exception if it raised one.
+        """
+        with self._cond:
+            if self._slot is None and not self._ended:
+                self._cond.wait(timeout_s)
+            newest, self._slot = self._slot, None
+            ended = self._ended
+        if newest is not None:
+            return newest
+        if ended:
+            if self._error is not None:
+                raise self._error
+            raise StopIteration
+        return None
+
+    def items(self) -> Iterator[tuple[object, float] | None]:
+        """(item, arrival time) of the newest item whenever the caller asks, ``None`` while
+        there is none; ends with the source."""
+        self.start()
+        while True:
+            try:
+                yield self.take(self.poll_s)
+            except StopIteration:
+                return
+
+    def __iter__(self) -> Iterator:
+        for entry in self.items():
+            yield None if entry is None else entry[0]
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop capturing (after the item being captured, at most ``timeout_s``), then close
+        the source."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+        closer = getattr(self.source, "close", None)
+        if closer is not None:
+            closer()
 
 
 # ------------------------------------------------------------------------------------ pacing
@@ -137,6 +268,9 @@ class VideoSource:
     time as the devices allow. Camera images are stamped with ``time.monotonic()`` at the
     grab; video-file images with the first file's position (``CAP_PROP_POS_MSEC``), paced at
     real time when ``realtime`` is set. Iteration ends when any capture stops delivering.
+    Cameras and paced video files are ``live``: the loop grabs them in their own thread and
+    takes the newest pair (:class:`NewestOnly`), so the driver's buffer never hands it old
+    images.
 
     Parameters
     ----------
@@ -166,6 +300,7 @@ class VideoSource:
             )
         self.time_is_monotonic = any(isinstance(s, int) for s in self.specs)
         self.realtime = realtime
+        self.live = self.time_is_monotonic or realtime
         self.monotonic = monotonic
         self.stop_reason: str | None = None
         self._captures = []

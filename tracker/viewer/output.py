@@ -118,6 +118,18 @@ def web_viewer_url(host: str, web_port: int, grpc_url: str) -> str:
     return f"http://{host}:{int(web_port)}/?url={quote(grpc_url, safe='')}"
 
 
+def check_port_free(bind: str, port: int, what: str, advice: str) -> None:
+    """Raise a one-line OSError when a TCP port cannot be listened on (rerun's gRPC server
+    would only log the failure and drop the data)."""
+    family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+    with socket.socket(family) as probe:
+        try:
+            probe.bind((bind, int(port)))
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+            raise OSError(f"cannot {what} on {bind}:{port} ({reason}): {advice}") from None
+
+
 def rerun_executable() -> Path:
     """The ``rerun`` command line that the rerun-sdk wheel installs (``rerun_cli``)."""
     folder = Path(rerun_cli.__file__).parent
@@ -154,15 +166,8 @@ class WebViewer:
         OSError
             The port is taken, or the server did not start (with its last message).
         """
-        family = socket.AF_INET6 if ":" in self.bind else socket.AF_INET
-        with socket.socket(family) as probe:  # a clear error before starting anything
-            try:
-                probe.bind((self.bind, self.web_port))
-            except OSError as exc:
-                raise OSError(
-                    f"cannot host the rerun web viewer on {self.bind}:{self.web_port}"
-                    f" ({exc.strerror or exc}): choose another --web-viewer-port"
-                ) from None
+        advice = "choose another --web-viewer-port"
+        check_port_free(self.bind, self.web_port, "host the rerun web viewer", advice)
         log = tempfile.TemporaryFile()
         command = [
             str(rerun_executable()),
@@ -377,15 +382,13 @@ def open_rerun_output(
     web_viewer = None
     if getattr(args, "serve", False):
         served_url = f"rerun+http://{reachable_host(bind)}:{DEFAULT_VIEWER_PORT}/proxy"
+        check_port_free(
+            bind, DEFAULT_VIEWER_PORT, "serve rerun", "is another rerun server or viewer running?"
+        )
         if not getattr(args, "headless", False):
             web_port = getattr(args, "web_viewer_port", DEFAULT_WEB_VIEWER_PORT)
             web_viewer = WebViewer(bind, web_port, served_url).start()
-        try:
-            sinks.append(rr.GrpcServerSink(bind_ip=bind, port=DEFAULT_VIEWER_PORT))
-        except Exception as exc:  # a port in use
-            if web_viewer is not None:
-                web_viewer.close()
-            raise OSError(f"cannot serve rerun on {bind}:{DEFAULT_VIEWER_PORT}: {exc}") from None
+        sinks.append(rr.GrpcServerSink(bind_ip=bind, port=DEFAULT_VIEWER_PORT))
         targets.append(f"server {served_url}")
         output["served_url"] = served_url
         if web_viewer is not None:

@@ -16,6 +16,7 @@ not a line drawn across.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -92,6 +93,12 @@ def _report_stderr(message: str) -> None:
 def rig_views(rig) -> tuple[tuple[str, object], ...]:
     """(name, view) of every view of a rig, in its order."""
     return tuple(zip(rig.names, rig.views, strict=True))
+
+
+@functools.lru_cache(maxsize=64)
+def nis_band_per_dof(dof: int) -> tuple[float, float]:
+    """The chi-square 95% band of NIS / dof for ``dof`` degrees of freedom."""
+    return tuple(float(chi2.ppf(p, dof) / dof) for p in NIS_BAND)  # type: ignore[return-value]
 
 
 class _Unwrap:
@@ -451,9 +458,9 @@ class RerunSink:
         error_deg = np.degrees(wrap_angle(delta - np.asarray(truth_rad, dtype=float)))
         has_error = np.isfinite(error_deg)
         has_nis = np.isfinite(nis) & (dof > 0)
-        dof_safe = np.where(has_nis, dof, 1.0)
-        nis_per_dof = np.where(has_nis, nis / dof_safe, np.nan)
-        low, high = (np.where(has_nis, chi2.ppf(p, dof_safe) / dof_safe, np.nan) for p in NIS_BAND)
+        nis_per_dof = np.where(has_nis, nis / np.where(has_nis, dof, 1.0), np.nan)
+        band = np.array([nis_band_per_dof(int(k)) if k > 0 else (np.nan,) * 2 for k in dof])
+        low, high = np.where(has_nis[:, None], band.reshape(n, 2), np.nan).T
         return {
             delta_L_path(method): value_deg,
             band_path(method, "plus"): value_deg + two_sigma_deg,

@@ -29,13 +29,9 @@ import dataclasses
 import cv2
 import numpy as np
 
+from tracker.vision.detection import detection_backgrounds
 from tracker.vision.photometry import Photometry, background_samples, register_shift
-from tracker.vision.segmentation import (
-    SegmentationFlag,
-    Segmenter,
-    ViewSegmentation,
-    detection_backgrounds,
-)
+from tracker.vision.segmentation import SegmentationFlag, Segmenter, ViewSegmentation
 from tracker.vision.settings import SegmentationSettings, check_image
 
 Array = np.ndarray
@@ -52,7 +48,10 @@ class BackgroundModel:
         The image of the empty scene (or of the scene with the catheter parked out of view).
     settings : SegmentationSettings
         ``freeze_background``, ``background_rate``, ``background_stripes``,
-        ``background_gate_sigma``, ``catheter_clearance_px``.
+        ``background_every``, ``background_gate_sigma``, ``catheter_clearance_px``.
+    phase : int
+        This camera's turn among the rig's (it updates on the frames where
+        ``(frame + phase) % background_every == 0``).
 
     Attributes
     ----------
@@ -67,8 +66,9 @@ class BackgroundModel:
         Total shift the model has been re-registered by since the start, px.
     """
 
-    def __init__(self, background: Array, settings: SegmentationSettings) -> None:
+    def __init__(self, background: Array, settings: SegmentationSettings, phase: int = 0) -> None:
         self.settings = settings
+        self._frame = int(phase)
         self.image = np.array(background, np.uint8, copy=True)
         self._level = self.image.astype(np.float32)
         self._refresh()
@@ -95,7 +95,7 @@ class BackgroundModel:
     def update(
         self, image: Array, photometry: Photometry, catheter_px: list[tuple[Array, float]]
     ) -> None:
-        """Average the next stripe of rows of a frame into the model.
+        """Average the next stripe of rows of a frame into the model (on this camera's turn).
 
         Parameters
         ----------
@@ -108,7 +108,12 @@ class BackgroundModel:
             width plus ``catheter_clearance_px``, is left out.
         """
         s = self.settings
-        if s.freeze_background or not photometry.fitted:
+        self._frame += 1
+        if (
+            s.freeze_background
+            or not photometry.fitted
+            or (self._frame - 1) % s.background_every
+        ):
             return
         height = self.image.shape[0]
         rows_per = -(-height // s.background_stripes)
@@ -168,6 +173,8 @@ class CameraSegmenter:
         The registered base projected into this camera, px.
     name : str
         The camera's name in error messages.
+    index : int
+        The camera's place in the rig (the cameras take turns to update their backgrounds).
     """
 
     def __init__(
@@ -176,12 +183,13 @@ class CameraSegmenter:
         background: Array,
         base_px: Array | None = None,
         name: str = "camera",
+        index: int = 0,
     ) -> None:
         self.segmenter = segmenter
         self.settings = segmenter.settings
         self.name = name
         background = check_image(background, f"{name} background image")
-        self.background = BackgroundModel(background, self.settings)
+        self.background = BackgroundModel(background, self.settings, index)
         self.base_px = None if base_px is None else np.asarray(base_px, float).reshape(2)
         self.last: ViewSegmentation | None = None
         self.noise_gray: float | None = None  # running estimate of the sensor noise

@@ -339,8 +339,10 @@ class PairSegmenter:
         self.segmenter = Segmenter(catheter, settings)
         o = np.asarray(o_b_w_mm, float)
         self.cameras = tuple(
-            CameraSegmenter(self.segmenter, _sized(bg, view, name), view.project(o), name)
-            for bg, view, name in zip(backgrounds, rig.views, rig.names, strict=True)
+            CameraSegmenter(self.segmenter, _sized(bg, view, name), view.project(o), name, k)
+            for k, (bg, view, name) in enumerate(
+                zip(backgrounds, rig.views, rig.names, strict=True)
+            )
         )
 
     @property

@@ -55,6 +55,10 @@ class Photometry:
         Fraction of the grid's pixels saturated (0 or 255) in the frame.
     fitted : bool
         False when too few pixels could be used (a black or saturated frame).
+    dark_gray : float
+        The frame's gray level where the background's is 0: its black level (an offset the
+        light does not scale), ``f(0)`` extrapolated, within a quarter of ``f`` at the
+        background's mean level.
     """
 
     lut: Array
@@ -63,6 +67,7 @@ class Photometry:
     gain: float = 1.0
     clipped_fraction: float = 0.0
     fitted: bool = True
+    dark_gray: float = 0.0
 
     @property
     def lut_u8(self) -> Array:
@@ -258,8 +263,13 @@ def fit_photometry(
             G -= np.array([[ox @ ox, ox @ oy], [ox @ oy, oy @ oy]])
         # Central differences are twice the gradient.
         shift = -2.0 * _solve_small(G, [gx @ residual, gy @ residual]) / gain
+    # An offset of the frame does not scale with the light: contrasts are fractions of
+    # f(b) - f(0). (A gamma has no black level; f(0) of its fitted curve is the intercept of
+    # the curve's chord over the background's levels, which keeps contrasts to first order.)
+    bound = 0.25 * abs(float(lut[level]))
+    dark = min(max(float(lut[0]), -bound), bound) if normalise else 0.0
     lut = np.maximum.accumulate(lut)
-    return Photometry(lut.astype(np.float32), shift, sigma, gain, clipped, True)
+    return Photometry(lut.astype(np.float32), shift, sigma, gain, clipped, True, dark)
 
 
 def register_shift(

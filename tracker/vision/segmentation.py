@@ -9,11 +9,14 @@ The paper's approach, per view (:class:`Segmenter`):
    robustly on a grid of pixels (:mod:`tracker.vision.photometry`), whose residual is the
    per-frame noise estimate; optionally only in a region around the catheter's predicted
    image (with a search of the whole image when it is not found there);
-2. a threshold at a multiple of that noise, mask clean-up (closing, small blobs removed),
-   and the catheter chosen as the blob nearest the registered base;
+2. a threshold at a multiple of that noise on both images smoothed, at half resolution over
+   the whole image then at full resolution in the region found
+   (:mod:`tracker.vision.detection`), mask clean-up (closing, small blobs removed), and the
+   catheter chosen as the blob nearest the registered base;
 3. the centreline: mask pixels ordered by their geodesic distance from the base along the
-   mask (a shortest-path sweep on the pixel graph; pieces of a catheter split by an occluder
-   are joined across gaps up to ``max_gap_px``), sampled every ``bin_px``;
+   mask (a shortest-path sweep on the pixel graph, :mod:`tracker.vision.pixel_graph`; pieces
+   of a catheter split by an occluder are joined across gaps up to ``max_gap_px``), sampled
+   every ``bin_px``;
 4. the radio-opaque bands (pixels blocking more than ``band_contrast`` of the light), ordered
    along the centreline and assigned to the base, to the catheter's markers and to the tip;
 5. the base and the tip as the two ends of the centreline, at sub-pixel precision by mass
@@ -24,8 +27,10 @@ The paper's approach, per view (:class:`Segmenter`):
    band, must not run into the image border, and must be thinner than the base (the distal
    tube is); the mask must not touch or cross itself.
 
-Then per synchronised pair (:mod:`tracker.vision.pair`), with the rig: an epipolar check and
-the tip placed in 3-D from the tip band.
+Then per synchronised frame of the rig's views (:mod:`tracker.vision.pair`): an epipolar
+check and the tip placed in 3-D from the tip band. Over time, per camera
+(:mod:`tracker.vision.background`): a background that follows the scene and a region of
+interest that follows the catheter.
 
 Every point comes with a covariance propagated from the per-frame noise estimate through the
 centroid / end formulas (plus a small floor), and a flag saying what went wrong when a point
@@ -46,11 +51,17 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from models.catheter import Catheter
+from tracker.vision.detection import (
+    coarse_region,
+    detection_backgrounds,
+    find_in_box,
+    foreground,
+    search_box,
+)
 from tracker.vision.photometry import BackgroundSamples, Photometry, fit_photometry
+from tracker.vision.pixel_graph import PixelGraph
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 
 Array = np.ndarray
@@ -186,54 +197,26 @@ def _ends_cut(
     return e, float((grad**2) @ var_w), m
 
 
+_EYE2 = np.eye(2)
+_EYE2.flags.writeable = False
+# What _end returns when there is no end: its arrays are read-only, shared by every result.
+_NO_END = tuple(
+    np.full(shape, np.nan) for shape in ((2,), (2, 2), (2,))
+) + (float("nan"),) * 3
+for _array in _NO_END[:3]:
+    _array.flags.writeable = False
+
+
+def _median(values: Array) -> float:
+    """The median of a non-empty 1-D array (np.median costs far more for a few values)."""
+    n = values.size
+    part = np.partition(values, [(n - 1) // 2, n // 2])
+    return 0.5 * float(part[(n - 1) // 2] + part[n // 2])
+
+
 def _interpolate(points: Array, along: Array, at: Array) -> Array:
     """Points (m, 2) sampled at increasing ``along`` (m,), linearly interpolated at ``at`` (k,)."""
     return np.stack([np.interp(at, along, points[:, 0]), np.interp(at, along, points[:, 1])], -1)
-
-
-def _weighted_centroid(xy: Array, w: Array, var_w: Array) -> tuple[Array, Array]:
-    W = float(w.sum())
-    c = (w @ xy) / W
-    d = xy - c
-    cov = (d * var_w[:, None]).T @ d / W**2
-    return c, cov
-
-
-_SMOOTHED_NOISE = 0.375  # standard deviation of white noise after the 3 x 3 Gaussian
-_COARSE_NOISE = 0.273  # ... after cv2.pyrDown's 5 x 5 Gaussian ([1 4 6 4 1] / 16 each way)
-
-
-def smooth_for_detection(image: Array) -> Array:
-    """The image as the detection sees it: a 3 x 3 Gaussian ([1 2 1] / 4 each way). The
-    tube (4 px wide or more) keeps its contrast, white noise drops to 0.375 of itself."""
-    return cv2.GaussianBlur(image, (3, 3), 0)
-
-
-def detection_backgrounds(background: Array) -> tuple[Array, Array]:
-    """The background as the detection compares frames with it: smoothed
-    (:func:`smooth_for_detection`) and at half resolution (:func:`cv2.pyrDown`, the search
-    of the whole image)."""
-    return smooth_for_detection(background), cv2.pyrDown(background)
-
-
-def search_box(
-    points_px: Array, pad_px: float, shape: tuple[int, int]
-) -> tuple[int, int, int, int]:
-    """The region ``(x0, y0, x1, y1)`` around image points, padded and clipped to the image.
-
-    Non-finite points are left out; with none left (or ``pad_px <= 0``), the whole image.
-    """
-    height, width = shape
-    points = np.asarray(points_px, float).reshape(-1, 2)
-    points = points[np.all(np.isfinite(points), axis=1)]
-    if points.size == 0 or pad_px <= 0:
-        return (0, 0, width, height)
-    lo = np.floor(points.min(axis=0) - pad_px)
-    hi = np.ceil(points.max(axis=0) + pad_px) + 1
-    box = (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], width)), int(min(hi[1], height)))
-    if box[2] - box[0] < 2 or box[3] - box[1] < 2:
-        return (0, 0, width, height)
-    return box
 
 
 class Segmenter:
@@ -304,6 +287,7 @@ class Segmenter:
         contrast); the foreground at full resolution is then found in the region of the
         blobs found there, or in the whole image if the catheter runs out of that region.
         """
+        s = self.settings
         background = check_image(background, "background image")
         image = check_image(image, "image", background.shape)
         if photometry is None:
@@ -311,19 +295,16 @@ class Segmenter:
         flags = self.photometry_flags(photometry)
         if flags & (SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST):
             return self.empty_result(flags, photometry)
-        height, width = image.shape
-        whole = (0, 0, width, height)
         smoothed, coarse = detection_backgrounds(background) if prepared is None else prepared
         found = None
         if search_px is not None:
-            box = search_box(search_px, self.settings.roi_pad_px, image.shape)
-            found = self._find(image, smoothed, photometry, box, base_px)
+            box = search_box(search_px, s.roi_pad_px, image.shape)
+            found = find_in_box(image, smoothed, photometry, box, base_px, s)
         if found is None:
-            box = self._coarse_box(image, coarse, photometry, base_px)
-            if box is not None:
-                found = self._find(image, smoothed, photometry, box, base_px)
-                if found is None and box != whole:
-                    found = self._find(image, smoothed, photometry, whole, base_px)
+            region = coarse_region(image, coarse, photometry, base_px, s)
+            if region is not None:
+                box, base_ok = region
+                found = box, foreground(image, smoothed, photometry, box, s), base_ok
         if found is None:
             return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
         roi, mask, base_ok = found
@@ -382,108 +363,6 @@ class Segmenter:
             photometry=photometry,
         )
 
-    def _coarse_box(self, image, coarse_background, photometry, base_px):
-        """The region ``(x0, y0, x1, y1)`` of the catheter's blobs found in the whole image at
-        half resolution, with a margin of 4 px; None if there are none."""
-        s = self.settings
-        threshold = max(
-            s.threshold_sigma * _COARSE_NOISE * photometry.sigma_gray, s.min_threshold_gray
-        )
-        below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
-        mask = cv2.compare(cv2.pyrDown(image), cv2.LUT(coarse_background, below), cv2.CMP_LT)
-        base = None if base_px is None else 0.5 * np.asarray(base_px, float).reshape(2)
-        picked = self._pick_blobs(mask, base, scale=0.5)
-        if picked is None:
-            return None
-        height, width = image.shape
-        x0, y0, x1, y1 = picked[0]
-        return (max(2 * x0 - 4, 0), max(2 * y0 - 4, 0), min(2 * x1 + 4, width),
-                min(2 * y1 + 4, height))
-
-    def _find(self, image, smoothed_background, photometry, box, base_px):
-        """The catheter's region in the search box ``(x0, y0, x1, y1)``.
-
-        Foreground: ``f(background) - image > threshold``, both smoothed
-        (:func:`smooth_for_detection`; ``f`` commutes with the smoothing to far below a gray
-        level for a smooth tone curve), by one table lookup and one comparison.
-
-        Returns ``(x0, y0, x1, y1)`` in the image, its foreground mask and whether the
-        catheter passes near the base; None when there is nothing, or, for a box smaller than
-        the image, when the catheter misses the base or comes within 3 px of the box's edge
-        (it may run on outside).
-        """
-        s = self.settings
-        bx0, by0, bx1, by1 = box
-        threshold = max(
-            s.threshold_sigma * _SMOOTHED_NOISE * photometry.sigma_gray, s.min_threshold_gray
-        )
-        # image < f(b) - threshold, for integer gray levels: image < ceil(f(b) - threshold).
-        below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
-        mask = cv2.compare(
-            smooth_for_detection(image[by0:by1, bx0:bx1]),
-            cv2.LUT(smoothed_background[by0:by1, bx0:bx1], below),
-            cv2.CMP_LT,
-        )
-        if base_px is not None:
-            base_px = np.asarray(base_px, float).reshape(2) - (bx0, by0)
-        picked = self._pick_blobs(mask, base_px)
-        if picked is None:
-            return None
-        (x0, y0, x1, y1), base_ok = picked
-        height, width = image.shape
-        if (bx1 - bx0, by1 - by0) != (width, height):
-            inner = (x0 > 0 or bx0 == 0, y0 > 0 or by0 == 0,
-                     x1 < mask.shape[1] or bx1 == width, y1 < mask.shape[0] or by1 == height)
-            if not (all(inner) and base_ok):
-                return None
-        return (x0 + bx0, y0 + by0, x1 + bx0, y1 + by0), mask[y0:y1, x0:x1], base_ok
-
-    def _pick_blobs(self, mask: Array, base_px: Array | None, scale: float = 1.0):
-        """The catheter's blob and the blobs near it: ROI (x0, y0, x1, y1), base found.
-
-        ``scale`` is the mask's resolution relative to the image's (the settings' areas and
-        distances are in image pixels).
-        """
-        s = self.settings
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        blobs = []
-        for c in contours:
-            # Pixel area of a blob from its boundary polygon (Pick's theorem).
-            area = cv2.contourArea(c) + 0.5 * cv2.arcLength(c, True) + 1.0
-            if area >= s.min_area_px * scale**2:
-                blobs.append((area, c, cv2.boundingRect(c)))
-        if not blobs:
-            return None
-        base_ok = False
-        main = max(range(len(blobs)), key=lambda i: blobs[i][0])
-        if base_px is not None:
-            p = tuple(float(v) for v in np.asarray(base_px, float).reshape(2))
-            if np.all(np.isfinite(p)):
-                dist = [-cv2.pointPolygonTest(c, p, True) for _, c, _ in blobs]
-                nearest = int(np.argmin(dist))
-                if dist[nearest] <= s.base_search_px * scale:
-                    main, base_ok = nearest, True
-        x, y, w, h = blobs[main][2]
-        box = [x, y, x + w, y + h]
-        # Pieces within the gap distance (an occluder split the catheter), transitively.
-        rest = [b[2] for i, b in enumerate(blobs) if i != main]
-        grown = True
-        while grown and rest:
-            grown = False
-            for r in list(rest):
-                gx = max(r[0] - box[2], box[0] - (r[0] + r[2]), 0)
-                gy = max(r[1] - box[3], box[1] - (r[1] + r[3]), 0)
-                if np.hypot(gx, gy) <= s.max_gap_px * scale:
-                    box = [min(box[0], r[0]), min(box[1], r[1]),
-                           max(box[2], r[0] + r[2]), max(box[3], r[1] + r[3])]
-                    rest.remove(r)
-                    grown = True
-        height, width = mask.shape
-        m = 3
-        roi = (max(box[0] - m, 0), max(box[1] - m, 0), min(box[2] + m, width),
-               min(box[3] + m, height))
-        return roi, base_ok
-
     def _segment_roi(self, image, background, photometry, m, roi, base_px, flags):
         s = self.settings
         sigma = photometry.sigma_gray
@@ -499,13 +378,15 @@ class Segmenter:
         # Usually every blob in the region is large: keep the mask as it is.
         keep = m if big[1:].all() else big[labels].view(np.uint8)
         ys, xs = np.nonzero(keep)
-        # The background as the frame would show it: the contrast is relative to that.
-        bg = np.maximum(photometry.lut[background[y0:y1, x0:x1][ys, xs]].astype(np.float64), 1.0)
-        w = np.maximum(bg - image[y0:y1, x0:x1][ys, xs], 0.0) / bg
+        # The background as the frame would show it, and the light that is: the contrast is
+        # the fraction of that light the catheter blocks.
+        lit = photometry.lut[background[y0:y1, x0:x1][ys, xs]].astype(np.float64)
+        bg = np.maximum(lit - photometry.dark_gray, 1.0)
+        w = np.maximum(lit - image[y0:y1, x0:x1][ys, xs], 0.0) / bg
         var_w = (sigma / bg) ** 2
         xy = np.column_stack([xs + x0, ys + y0]).astype(np.float64)
         # ---- pixel graph (8-neighbours) and the geodesic sweep from the base
-        graph = _PixelGraph(ys, xs, m.shape, xy)
+        graph = PixelGraph(ys, xs, m.shape, xy)
         if base_px is not None:
             seed = int(np.argmin(np.sum((xy - np.asarray(base_px, float)) ** 2, axis=1)))
             dist, joined = graph.sweep(seed, s.max_gap_px)
@@ -666,12 +547,12 @@ class Segmenter:
         ok = count > 0
         if ok.sum() < 3:
             return False
-        typical_n = float(np.median(count[ok]))
+        typical_n = _median(count[ok])
         wide = ok & (count > 1.1 * s.overlap_ratio * typical_n)
         if wide.any():
             thickness = np.zeros(n_bins)
             np.maximum.at(thickness, bins, thickness_of())
-            typical_r = float(np.median(thickness[ok]))
+            typical_r = _median(thickness[ok])
             if np.any(thickness[wide] > s.overlap_ratio * typical_r):
                 return True
         longest = 1.6 * typical_n / s.bin_px + 2.0 * s.bin_px
@@ -694,18 +575,38 @@ class Segmenter:
         n_lab, labels = cv2.connectedComponents(bmask, connectivity=8)
         lab = labels[by, bx]
         order = np.argsort(lab, kind="stable")
-        cuts = np.flatnonzero(np.diff(lab[order])) + 1
+        sorted_idx = idx[order]
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(lab[order])) + 1])
+        stops = np.append(starts[1:], idx.size)
+        d_sorted = dist[sorted_idx]
+        d_min = np.minimum.reduceat(d_sorted, starts)
+        d_max = np.maximum.reduceat(d_sorted, starts)
+        # Per band, by sums over its pixels: the contrast-weighted centroid and its covariance
+        # sum(var (p - c)(p - c)^T) / W^2 (the contrast's noise through the centroid), in the
+        # region's frame.
+        n = int(n_lab)
+        excess = w[idx] - s.band_contrast
+        x, y, v = bx.astype(np.float64), by.astype(np.float64), var_w[idx]
+        W = np.bincount(lab, excess, n)
+        cx = np.bincount(lab, excess * x, n) / np.where(W > 0, W, 1.0)
+        cy = np.bincount(lab, excess * y, n) / np.where(W > 0, W, 1.0)
+        d_mean = np.bincount(lab, excess * dist[idx], n) / np.where(W > 0, W, 1.0)
+        V, Vx, Vy = (np.bincount(lab, v * a, n) for a in (1.0, x, y))
+        Vxx, Vxy, Vyy = (np.bincount(lab, v * a, n) for a in (x * x, x * y, y * y))
+        cov_xx = (Vxx - 2.0 * cx * Vx + cx * cx * V) / np.where(W > 0, W * W, 1.0)
+        cov_xy = (Vxy - cx * Vy - cy * Vx + cx * cy * V) / np.where(W > 0, W * W, 1.0)
+        cov_yy = (Vyy - 2.0 * cy * Vy + cy * cy * V) / np.where(W > 0, W * W, 1.0)
         bands = []
-        for sel in np.split(idx[order], cuts):
-            if sel.size < s.min_band_area_px:
+        for j, (start, stop) in enumerate(zip(starts, stops, strict=True)):
+            if stop - start < s.min_band_area_px:
                 continue
-            excess = w[sel] - s.band_contrast
-            c, cov = _weighted_centroid(xy[sel], excess, var_w[sel])
-            d = dist[sel]
-            bands.append(
-                dict(c=c, cov=cov, d=float(excess @ d / excess.sum()), d_min=float(d.min()),
-                     d_max=float(d.max()), sel=sel)
-            )
+            k = lab[order[start]]
+            bands.append(dict(
+                c=np.array([cx[k] + roi[0], cy[k] + roi[1]]),
+                cov=np.array([[cov_xx[k], cov_xy[k]], [cov_xy[k], cov_yy[k]]]),
+                d=float(d_mean[k]), d_min=float(d_min[j]), d_max=float(d_max[j]),
+                sel=sorted_idx[start:stop],
+            ))
         bands.sort(key=lambda b: b["d"])
         return bands
 
@@ -722,12 +623,9 @@ class Segmenter:
         unit length (contrast x px: the band's contrast times the tube's image width).
         """
         s = self.settings
-        nan = (
-            np.full(2, np.nan), np.full((2, 2), np.nan), np.full(2, np.nan), np.nan, np.nan, np.nan
-        )
         centreline, centre_dist = line
         if centreline.shape[0] < 4:
-            return nan
+            return _NO_END
         step = 2.0 * s.bin_px
         sign = -1.0 if at_tip else 1.0
         if band is not None:
@@ -742,7 +640,7 @@ class Segmenter:
         direction = 3.0 * cut - 4.0 * p[0] + p[1]  # toward the end in both cases
         norm = np.hypot(direction[0], direction[1])
         if norm < 1e-9:
-            return nan
+            return _NO_END
         direction = direction / norm
         if band is not None:
             t_band = (xy[band["sel"]] - cut) @ direction
@@ -756,7 +654,7 @@ class Segmenter:
         near = near[np.einsum("ij,ij->i", rel, rel) <= reach**2]
         e, var_e, m_per_px = _ends_cut(xy[near], w[near], var_w[near], cut, direction, slab)
         if not np.isfinite(e):
-            return nan
+            return _NO_END
         # The end disc of a tube seen obliquely sticks out past the end point by up to
         # pi/4 of the radius (m / 2 per unit contrast); half of that is the uncertainty of a
         # single view (segment_pair removes it with both views).
@@ -765,10 +663,10 @@ class Segmenter:
         contrast = float(np.partition(w_near, k)[k])  # the plateau, robust to noise
         radius_px = 0.5 * m_per_px / max(contrast, 1e-6)
         var_e = var_e + (np.pi / 8.0 * radius_px) ** 2
-        dd = np.outer(direction, direction)
+        dd = direction[:, None] * direction[None, :]
         # Across: the end moves sideways with the direction's error.
         var_across = (e * s.tip_direction_sigma_rad) ** 2
-        cov = cut_cov + var_e * dd + var_across * (np.eye(2) - dd)
+        cov = cut_cov + var_e * dd + var_across * (_EYE2 - dd)
         return cut + e * direction, cov, direction, e, radius_px, m_per_px
 
     def _assign(self, bands, base_band, tip_band, D):
@@ -792,62 +690,3 @@ class Segmenter:
                     used.add(int(i))
                     break
         return out, len(bands) > n
-
-
-_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
-_LENGTHS = np.array([np.hypot(dy, dx) for dy, dx in _OFFSETS])
-
-
-class _PixelGraph:
-    """The 8-neighbour graph of foreground pixels, edge lengths in px, for geodesic sweeps.
-
-    Built straight into compressed sparse rows: pixels are numbered in row-major order, so
-    each pixel's neighbour list is already grouped and no sort is needed.
-    """
-
-    def __init__(self, ys: Array, xs: Array, shape: tuple[int, int], xy: Array) -> None:
-        n = ys.size
-        width = shape[1] + 2
-        # Every pixel gets its eight neighbours; missing ones point at an extra sink node n
-        # that has no way out, so no masking or sorting is needed.
-        index = np.full((shape[0] + 2) * width, n, np.int32)
-        flat = (ys + 1) * width + (xs + 1)
-        index[flat] = np.arange(n, dtype=np.int32)
-        offsets = np.array([dy * width + dx for dy, dx in _OFFSETS])
-        nb = index[flat[:, None] + offsets]
-        indptr = np.append(np.arange(0, 8 * n + 1, 8, dtype=np.int32), 8 * n)
-        lengths = np.tile(_LENGTHS, n)
-        self.n = n
-        self.xy = xy
-        self.graph = csr_matrix((lengths, nb.ravel(), indptr), shape=(n + 1, n + 1))
-
-    def _bridge(self, a: int, b: int, length: float) -> None:
-        g = self.graph.tocoo()
-        keep = g.col < self.n
-        g = g.__class__((g.data[keep], (g.row[keep], g.col[keep])), shape=g.shape)
-        rows = np.concatenate([g.row, [a, b]])
-        cols = np.concatenate([g.col, [b, a]])
-        data = np.concatenate([g.data, [length, length]])
-        self.graph = csr_matrix((data, (rows, cols)), shape=g.shape)
-
-    def sweep(self, seed: int, max_gap_px: float) -> tuple[Array, bool]:
-        """Geodesic distances from ``seed``, joining unreached pieces across gaps <= max_gap_px.
-
-        Returns the distances (inf where unreached) and whether a gap was bridged (the
-        bridges stay in the graph for later sweeps).
-        """
-        joined = False
-        for _ in range(8):
-            dist = dijkstra(self.graph, directed=True, indices=seed)[: self.n]
-            reached = np.isfinite(dist)
-            if reached.all() or max_gap_px <= 0:
-                break
-            far = int(np.argmax(np.where(reached, dist, -1)))
-            out = np.flatnonzero(~reached)
-            gaps = np.linalg.norm(self.xy[out] - self.xy[far], axis=1)
-            j = int(np.argmin(gaps))
-            if gaps[j] > max_gap_px:
-                break
-            self._bridge(far, int(out[j]), float(gaps[j]))
-            joined = True
-        return dist, joined

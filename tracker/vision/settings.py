@@ -97,10 +97,12 @@ class SegmentationSettings:
     freeze_background : bool
         Keep the background image as given (no update from the frames).
     background_rate : float
-        Weight of a frame in the background's running average, per update of a pixel (each
-        frame updates ``1 / background_stripes`` of the rows).
+        Weight of a frame in the background's running average, per update of a pixel.
     background_stripes : int
-        The rows of the image are updated in this many interleaved stripes, one per frame.
+        The rows of the image are updated in this many stripes, one at a time...
+    background_every : int
+        ...every this many frames (the cameras of a rig take turns): a pixel is updated every
+        ``background_stripes x background_every`` frames.
     background_gate_sigma : float
         Pixels differing from the background by more than this many noise standard
         deviations are not averaged in (a catheter, a hand, anything new in the scene).
@@ -136,7 +138,8 @@ class SegmentationSettings:
     roi_pad_px: float = 40.0
     freeze_background: bool = False
     background_rate: float = 0.1
-    background_stripes: int = 16
+    background_stripes: int = 8
+    background_every: int = 2
     background_gate_sigma: float = 4.0
     catheter_clearance_px: float = 6.0
 
@@ -164,7 +167,7 @@ class SegmentationSettings:
                 f" got {self.band_contrast!r}"
             )
         for name in ("min_area_px", "min_band_area_px", "closing_px", "noise_stride_px",
-                     "background_stripes"):
+                     "background_stripes", "background_every"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(
@@ -176,10 +179,9 @@ class SegmentationSettings:
                     f"segmentation setting {name} must be true or false,"
                     f" got {getattr(self, name)!r}"
                 )
-        if self.noise_stride_px < 1 or self.background_stripes < 1:
-            raise ValueError(
-                "segmentation settings noise_stride_px and background_stripes must be >= 1"
-            )
+        for name in ("noise_stride_px", "background_stripes", "background_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"segmentation setting {name} must be >= 1")
         if not (isinstance(self.max_gain_change, int | float) and self.max_gain_change > 1):
             raise ValueError(
                 f"segmentation setting max_gain_change must be > 1, got {self.max_gain_change!r}"

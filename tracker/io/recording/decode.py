@@ -3,7 +3,8 @@
 :class:`tracker.io.recording.reader.Recording` gathers the parsed messages per topic and
 hands them here: the joint blocks become one sorted joint stream, the marker messages one
 array per view, ``/truth`` the labels, ``/estimates/<method>`` the estimates. Whatever does
-not fit its schema is skipped and counted in :class:`Problems`.
+not fit its schema, lies outside the session or beyond the physical ranges of
+:mod:`tracker.io.limits` is skipped and counted in :class:`Problems`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tracker.io.limits import MAX_ANGLE_RAD, joints_in_range, points_in_range
 from tracker.io.recording.schema import (
     JOINT_COLUMNS,
     RATE_COLUMNS,
@@ -33,6 +35,11 @@ PROBLEMS = {
     "nan": "message(s) hold NaN or infinite values ({where}): those points count as missing",
     "nan_joints": "joint sample(s) hold NaN or null values ({where}): skipped",
     "nan_truth": "message(s) hold a NaN truth ({where}): truth unknown for those frames",
+    "out_of_session": "message(s) or sample(s) stamped outside the session ({where}): skipped",
+    "out_of_range": (
+        "value(s) beyond the physical ranges ({where}): skipped (points count as missing,"
+        " truth as unknown)"
+    ),
     "malformed": "message(s) do not match their schema ({where}): skipped",
     "bad_image": "image(s) cannot be decoded ({where}): those frames have no images",
     "unknown_channel": "message(s) on an undeclared channel ({where}): skipped",
@@ -64,8 +71,9 @@ class Problems:
 
 
 # ---------------------------------------------------------------------------------- joints
-def joint_stream(blocks: list[dict], problems: Problems, source: str):
-    """The joint samples of the ``/joints`` blocks, sorted, NaN and repeated samples dropped.
+def joint_stream(blocks: list[dict], problems: Problems, source: str, session_ns: tuple[int, int]):
+    """The joint samples of the ``/joints`` blocks, sorted; samples that are NaN, repeated,
+    stamped outside ``session_ns`` (log times, ns) or beyond the robot's ranges dropped.
 
     Returns
     -------
@@ -112,7 +120,7 @@ def joint_stream(blocks: list[dict], problems: Problems, source: str):
     try:
         if not consistent:
             raise ValueError
-        t = np.array(stamps, dtype=np.int64)
+        t = _stamps(stamps)
         # numpy turns null (None) into NaN: such samples are dropped below.
         q = np.column_stack([np.array(columns[n], dtype=float) for n in JOINT_COLUMNS])
         r = np.column_stack([np.array(columns[n], dtype=float) for n in RATE_COLUMNS])
@@ -126,6 +134,14 @@ def joint_stream(blocks: list[dict], problems: Problems, source: str):
         bad |= ~np.all(np.isfinite(r), axis=1)
     if bad.any():
         problems.add("nan_joints", TOPIC_JOINTS, int(np.count_nonzero(bad)))
+        t, q, r = t[~bad], q[~bad], r[~bad]
+    bad = (t < session_ns[0]) | (t > session_ns[1])
+    if bad.any():
+        problems.add("out_of_session", TOPIC_JOINTS + " (samples)", int(np.count_nonzero(bad)))
+        t, q, r = t[~bad], q[~bad], r[~bad]
+    bad = ~joints_in_range(q, r if any_rates else None)
+    if bad.any():
+        problems.add("out_of_range", TOPIC_JOINTS + " (samples)", int(np.count_nonzero(bad)))
         t, q, r = t[~bad], q[~bad], r[~bad]
     if t.size > 1 and np.any(np.diff(t) < 0):
         problems.add("out_of_order", TOPIC_JOINTS + " (samples)", int(np.sum(np.diff(t) < 0)))
@@ -141,6 +157,21 @@ def joint_stream(blocks: list[dict], problems: Problems, source: str):
     return t, q, r if any_rates else None
 
 
+_OUTSIDE_INT64 = np.iinfo(np.int64).min
+"""Stands for a time stamp beyond 64-bit integers: outside every session."""
+
+
+def _stamps(values: list) -> Array:
+    """Integer time stamps, ns; those beyond 64-bit integers become :data:`_OUTSIDE_INT64`."""
+    try:
+        return np.array(values, dtype=np.int64)
+    except OverflowError:
+        limit = 2**63
+        return np.array(
+            [x if -limit < x < limit else _OUTSIDE_INT64 for x in values], dtype=np.int64
+        )
+
+
 def _joint_blocks_one_by_one(
     blocks: list[dict], problems: Problems, source: str
 ) -> tuple[Array, Array, Array]:
@@ -149,7 +180,7 @@ def _joint_blocks_one_by_one(
     stamps, qs, rates = [], [], []
     for payload in blocks:
         try:
-            t = np.array(payload["time_ns"], dtype=np.int64)
+            t = _stamps(payload["time_ns"])
             q = np.column_stack([np.array(payload[n], dtype=float) for n in JOINT_COLUMNS])
             if payload.get(RATE_COLUMNS[0]) is None:
                 r = np.full((t.size, 3), np.nan)
@@ -230,8 +261,9 @@ def marker_arrays(
             bad_frames = int(np.count_nonzero(~finite.all(axis=1)))
             if bad_frames:
                 problems.add("nan", topic, bad_frames)
-            points[~finite] = np.nan
-            matrices[~finite] = np.nan
+            good = _in_range(points, matrices, finite, topic, problems)
+            points[~good] = np.nan
+            matrices[~good] = np.nan
             uv[full], cov[full] = points, matrices
     return uv, cov, quality
 
@@ -255,13 +287,26 @@ def _markers(
             finite = np.isfinite(points).all(axis=1) & np.isfinite(matrices).all(axis=(1, 2))
             if not finite.all():
                 problems.add("nan", topic)
-            index = np.array(present)[finite]
-            uv[index], cov[index] = points[finite], matrices[finite]
+            good = _in_range(points[None], matrices[None], finite[None], topic, problems)[0]
+            index = np.array(present)[good]
+            uv[index], cov[index] = points[good], matrices[good]
         quality = marker_quality(payload, topic, problems)
     except (KeyError, TypeError, ValueError):
         problems.add("malformed", topic)
         return np.full((P, 2), np.nan), np.full((P, 2, 2), np.nan), None
     return uv, cov, quality
+
+
+def _in_range(
+    points: Array, matrices: Array, finite: Array, topic: str, problems: Problems
+) -> Array:
+    """Which of the finite points (frames, P) are within the physical ranges; the frames with
+    one beyond are counted."""
+    good = finite & points_in_range(points, matrices)
+    beyond = int(np.count_nonzero((finite & ~good).any(axis=1)))
+    if beyond:
+        problems.add("out_of_range", topic, beyond)
+    return good
 
 
 def marker_quality(payload: dict, topic: str, problems: Problems) -> MarkerQuality | None:
@@ -293,6 +338,13 @@ def labels(payload: dict | None, problems: Problems) -> tuple[float | None, Fram
         value = float(value)
         return value if math.isfinite(value) else None
 
+    def angle(key):
+        value = number(key)
+        if value is not None and abs(value) > MAX_ANGLE_RAD:
+            problems.add("out_of_range", TOPIC_TRUTH)
+            return None
+        return value
+
     def index(key):
         value = payload.get(key)
         return None if value is None else int(value)
@@ -306,9 +358,9 @@ def labels(payload: dict | None, problems: Problems) -> tuple[float | None, Fram
             configuration=index("configuration"),
             deflection_mm=number("deflection_mm"),
             noise_level=number("noise_level"),
-            delta_1_true_rad=number("delta_1_rad"),
+            delta_1_true_rad=angle("delta_1_rad"),
         )
-        return number("delta_L_rad"), frame_labels
+        return angle("delta_L_rad"), frame_labels
     except (TypeError, ValueError, AttributeError):
         problems.add("malformed", TOPIC_TRUTH)
         return None, FrameLabels()

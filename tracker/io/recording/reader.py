@@ -7,7 +7,9 @@ clear message naming the file. Everything else that can be read is kept: a damag
 truncated file gives every intact message before the damage and, where the walk finds its
 way, after it (the report names each loss by kind, bytes and seconds); out-of-order messages
 are sorted, duplicated time stamps keep the first message, NaN values mark the points (or
-joint samples) as missing; each of these is counted once in :class:`ReadReport`. Frames come
+joint samples) as missing, messages stamped outside the session and values beyond the
+physical ranges (:mod:`tracker.io.limits`) are skipped; each of these is counted once in
+:class:`ReadReport`. Frames come
 back as :class:`tracker.types.Frame` -- the type the live loop consumes -- with their joint
 values interpolated to the frame time (:class:`tracker.io.joints.JointHistory`, as live),
 together with the experiment's labels.
@@ -15,6 +17,7 @@ together with the experiment's labels.
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import json
 import tomllib
@@ -33,6 +36,7 @@ from models.model_file import ModelFileError, catheter_from_dict
 from models.pose import Pose
 from models.rig_file import RigFileError, rig_from_toml, view_names
 from tracker.io.joints import JointHistory
+from tracker.io.limits import MAX_START_TIME_NS, SESSION_TIME_RANGE_S
 from tracker.io.recording import decode
 from tracker.io.recording.images import decode_image
 from tracker.io.recording.scan import Damage, Located, McapScan
@@ -148,6 +152,7 @@ class Recording:
         self._channels: dict[int, str] = {}
         self._last_time: dict[str, int] = {}
         self._max_time: int | None = None
+        self._session_ns: tuple[int, int] | None = None  # known once 'cathtrack' is read
         self._joint_blocks: list[dict] = []
         self._per_frame: dict[str, dict[int, Any]] = {}
         self._estimates_raw: dict[str, dict[int, dict]] = {}
@@ -160,7 +165,11 @@ class Recording:
         try:
             damage = self._scan()
             self.metadata = self._check_metadata()
-            self.report.warnings += [self._damage_warning(d, t) for d, t in damage]
+            self._session_ns = self._session(self.metadata.start_time_ns)
+            self._drop_out_of_session()
+            damage = [(self._in_session_damage(d), *times) for d, *times in damage]
+            self.report.damage = [d for d, *_ in damage]
+            self.report.warnings += [self._damage_warning(*entry) for entry in damage]
             self._assemble()
         except BaseException:
             self.close()
@@ -170,8 +179,9 @@ class Recording:
                 gc.enable()
 
     # ---------------------------------------------------------------- scanning
-    def _scan(self) -> list[tuple[Damage, int | None]]:
-        """Gather the messages; the damage found, each with the latest log time before it."""
+    def _scan(self) -> list[tuple[Damage, int | None, int | None]]:
+        """Gather the messages; the damage found, each with the latest log time before it and
+        the first after it (None: no message there)."""
         try:
             self._file = open(self.path, "rb")  # noqa: SIM115 - kept open for lazy images
         except OSError as exc:
@@ -182,26 +192,73 @@ class Recording:
             raise RecordingError(
                 f"{self.path} is not an MCAP file (it does not start with the MCAP magic bytes)"
             ) from None
-        damage = []
+        damage: list[list] = []
+        awaiting = 0  # how many of the last damages wait for the first message after them
         for item in self._mcap.records():
             if isinstance(item, Damage):
                 self.report.damage.append(item)
-                damage.append((item, self._max_time))
+                damage.append([item, self._max_time, None])
+                awaiting += 1
                 continue
             record = item.record
             if isinstance(record, Message):
+                if awaiting and self._in_session(record.log_time):
+                    for entry in damage[-awaiting:]:
+                        entry[2] = record.log_time
+                    awaiting = 0
                 self._message(record.channel_id, record.log_time, record.data, item)
             elif isinstance(record, Channel):
                 self._channels[record.id] = record.topic
                 self.report.messages.setdefault(record.topic, 0)
             elif isinstance(record, Metadata):
                 self._metadata_raw[record.name] = dict(record.metadata)
-        return damage
+                if record.name == "cathtrack":
+                    start_ns = self._start_ns()
+                    self._session_ns = None if start_ns is None else self._session(start_ns)
+        return [tuple(entry) for entry in damage]
+
+    @staticmethod
+    def _session(start_ns: int) -> tuple[int, int]:
+        """The log times, ns, of the session that starts at ``start_ns``."""
+        low, high = SESSION_TIME_RANGE_S
+        return start_ns + int(low * 1e9), start_ns + int(high * 1e9)
+
+    def _in_session(self, log_time: int) -> bool:
+        """Whether a log time is within the session (within 64-bit integers before the
+        'cathtrack' metadata record gives the start)."""
+        low, high = self._session_ns or (-(2**63), 2**63 - 1)
+        return low <= log_time <= high
+
+    def _drop_out_of_session(self) -> None:
+        """Skip (and count) what was stored before the session was known and lies outside."""
+        stores = [*self._per_frame.items(), *self._estimates_raw.items()]
+        for topic, store in stores:
+            outside = [stamp for stamp in store if not self._in_session(stamp)]
+            for stamp in outside:
+                del store[stamp]
+            if outside:
+                name = topic if topic.startswith("/") else f"/estimates/{topic}"
+                self._problems.add("out_of_session", name, len(outside))
+        if self._max_time is not None and not self._in_session(self._max_time):
+            stamps = [stamp for store in self._per_frame.values() for stamp in store]
+            self._max_time = max(stamps, default=None)
+
+    def _in_session_damage(self, damage: Damage) -> Damage:
+        """The damage with its span of log times forgotten where the (damaged) chunk header
+        gives times outside the session."""
+        if damage.start_ns is None or damage.end_ns is None:
+            return damage
+        if self._in_session(damage.start_ns) and self._in_session(damage.end_ns):
+            return damage
+        return dataclasses.replace(damage, start_ns=None, end_ns=None)
 
     def _message(self, channel_id: int, log_time: int, data: bytes, where: Located) -> None:
         topic = self._channels.get(channel_id)
         if topic is None:
             self._problems.add("unknown_channel", f"channel {channel_id}")
+            return
+        if not self._in_session(log_time):
+            self._problems.add("out_of_session", topic)
             return
         messages = self.report.messages
         messages[topic] = messages.get(topic, 0) + 1
@@ -252,19 +309,31 @@ class Recording:
         return payload
 
     def _seconds(self, time_ns: int) -> float:
-        return (time_ns - self._start_ns()) / 1e9
+        return (time_ns - self.metadata.start_time_ns) / 1e9
 
-    def _damage_warning(self, damage: Damage, before_ns: int | None) -> str:
-        """One line naming the loss: kind, bytes, and the session time it spanned."""
+    def _damage_warning(self, damage: Damage, before_ns: int | None, after_ns: int | None) -> str:
+        """One line naming the loss: kind, bytes, and the session time it spanned (from the
+        damaged chunk's header, else between the last message read before the damage and the
+        first read after it)."""
         d = damage
         where = f"bytes {d.offset} to {d.end}"
-        span = (
-            f"data from t = {self._seconds(d.start_ns):.3f} to {self._seconds(d.end_ns):.3f} s"
-            if d.start_ns is not None and d.end_ns is not None
-            else "the data there"
-        )
-        read_up_to = "" if before_ns is None else f" up to t = {self._seconds(before_ns):.3f} s"
+        if d.start_ns is not None and d.end_ns is not None:
+            span = (
+                f"data from t = {self._seconds(d.start_ns):.3f} to {self._seconds(d.end_ns):.3f} s"
+            )
+        elif before_ns is not None and after_ns is not None:
+            span = (
+                f"data between t = {self._seconds(before_ns):.3f} and"
+                f" {self._seconds(after_ns):.3f} s"
+            )
+        elif before_ns is not None:
+            span = f"data after t = {self._seconds(before_ns):.3f} s"
+        elif after_ns is not None:
+            span = f"data before t = {self._seconds(after_ns):.3f} s"
+        else:
+            span = "the data there"
         if d.kind == "truncated":
+            read_up_to = "" if before_ns is None else f" up to t = {self._seconds(before_ns):.3f} s"
             lost = (
                 "" if d.start_ns is None else f"; the incomplete chunk held {span}, which is lost"
             )
@@ -281,27 +350,36 @@ class Recording:
                 f"a chunk at byte {d.offset} has a damaged record length ({d.detail}): read by"
                 " its content, nothing lost"
             )
-        after = "" if before_ns is None else f" after t = {self._seconds(before_ns):.3f} s"
         if d.kind == "bad_length":
             return (
                 f"a record at byte {d.offset} has a damaged length ({d.detail}): skipped"
-                f" ({where}), {span}{after} lost"
+                f" ({where}), {span} lost"
             )
-        return f"{where} hold no readable record ({d.detail}): skipped, {span}{after} lost"
+        return f"{where} hold no readable record ({d.detail}): skipped, {span} lost"
 
-    def _start_ns(self) -> int:
+    def _start_ns(self) -> int | None:
+        """The start time of the 'cathtrack' metadata record (None: not a valid one)."""
+        text = self._metadata_raw.get("cathtrack", {}).get("start_time_ns", "0")
         try:
-            return int(self._metadata_raw.get("cathtrack", {}).get("start_time_ns", 0))
+            start_ns = int(text)
         except ValueError:
-            return 0
+            return None
+        return start_ns if 0 <= start_ns <= MAX_START_TIME_NS else None
 
     # ---------------------------------------------------------------- checks
     def _check_metadata(self) -> RecordingMetadata:
         info = self._metadata_raw.get("cathtrack")
+        damaged = ""
+        if self.report.damage:
+            first = self.report.damage[0]
+            damaged = (
+                f"; the file is damaged in {len(self.report.damage)} place(s), first at bytes"
+                f" {first.offset} to {first.end} ({first.detail})"
+            )
         if info is None or info.get("format") != FORMAT:
             raise RecordingError(
                 f"{self.path} is an MCAP file but not a cathtrack recording (no 'cathtrack'"
-                f' metadata record naming the format "{FORMAT}")'
+                f' metadata record naming the format "{FORMAT}"{damaged})'
             )
         version = info.get("format_version", "")
         if version != str(FORMAT_VERSION):
@@ -311,15 +389,22 @@ class Recording:
             )
         for name in ("model", "rig"):
             if "toml" not in self._metadata_raw.get(name, {}):
-                raise RecordingError(f"{self.path}: missing the '{name}' metadata record")
+                raise RecordingError(f"{self.path}: missing the '{name}' metadata record{damaged}")
+        start_ns = self._start_ns()
+        if start_ns is None:
+            text = info.get("start_time_ns", "")
+            raise RecordingError(
+                f"{self.path}: the 'cathtrack' metadata record's start_time_ns must be an"
+                f" integer from 0 to {MAX_START_TIME_NS} ns, got {text[:40]!r}"
+            )
         try:
             settings = json.loads(self._metadata_raw.get("settings", {}).get("json", "{}"))
-        except ValueError:
+        except (ValueError, RecursionError):
             settings = {}
             self.report.warnings.append("the settings metadata is not valid JSON: ignored")
         return RecordingMetadata(
             format_version=int(version),
-            start_time_ns=self._start_ns(),
+            start_time_ns=start_ns,
             writer=info.get("writer", ""),
             model_toml=self._metadata_raw["model"]["toml"],
             rig_toml=self._metadata_raw["rig"]["toml"],
@@ -330,29 +415,32 @@ class Recording:
     def _assemble(self) -> None:
         start_ns = self.metadata.start_time_ns
         source = str(self.path)
-        if not self.report.messages.get(TOPIC_JOINTS):
+        self.views = self._view_names()
+        frame_topics = [f(view) for view in self.views for f in (markers_topic, image_topic)]
+        has_frames = any(self._per_frame.get(topic) for topic in frame_topics)
+        if self.report.messages.get(TOPIC_JOINTS):
+            t_ns, q, q_dot = decode.joint_stream(
+                self._joint_blocks, self._problems, source, self._session_ns
+            )
+            self.joints = JointHistory((t_ns - start_ns) / 1e9, q, q_dot)
+        elif has_frames:
             raise RecordingError(
                 f"{self.path}: missing channel {TOPIC_JOINTS}: a recording needs the joint values"
             )
-        t_ns, q, q_dot = decode.joint_stream(self._joint_blocks, self._problems, source)
-        self.joints = JointHistory((t_ns - start_ns) / 1e9, q, q_dot)
-        self.views = self._view_names()
-        views_present = []
+        else:  # stopped before the first joint sample: an empty recording, still readable
+            self.joints = JointHistory(np.zeros(0), np.zeros((0, 3)))
+        if not has_frames:
+            self.report.warnings.append(
+                "the recording holds no frames (no marker or image message of any view)"
+            )
         for view in self.views:
-            has_markers = bool(self._per_frame.get(markers_topic(view)))
             has_images = bool(self._per_frame.get(image_topic(view)))
-            if has_markers or has_images:
-                views_present.append(view)
-            if not self.report.messages.get(markers_topic(view)):
+            if has_frames and not self.report.messages.get(markers_topic(view)):
                 self.report.warnings.append(
                     f"missing channel {markers_topic(view)}: frames have no {view} markers"
                     + (" (the images can be segmented)" if has_images else "")
                 )
-        if not views_present:
-            raise RecordingError(
-                f"{self.path}: no marker or image channel of any view: nothing to track"
-            )
-        if not self.report.messages.get(TOPIC_TRUTH):
+        if has_frames and not self.report.messages.get(TOPIC_TRUTH):
             self.report.warnings.append(f"missing channel {TOPIC_TRUTH}: no ground truth")
         stamps = set()
         for view in self.views:
@@ -404,7 +492,7 @@ class Recording:
         """The recorded rig's view names (the bi-plane names for a rig that names none)."""
         try:
             return view_names(tomllib.loads(self.metadata.rig_toml), "recorded rig")
-        except (tomllib.TOMLDecodeError, RigFileError, AttributeError, TypeError):
+        except (tomllib.TOMLDecodeError, RecursionError, RigFileError, AttributeError, TypeError):
             return VIEWS
 
     def _point_count(self) -> int:
@@ -490,7 +578,7 @@ class Recording:
         """The catheter model of the ``model`` metadata record."""
         try:
             return catheter_from_dict(tomllib.loads(self.metadata.model_toml), "recorded model")
-        except (tomllib.TOMLDecodeError, ModelFileError) as exc:
+        except (tomllib.TOMLDecodeError, RecursionError, ModelFileError) as exc:
             raise RecordingError(f"{self.path}: {exc}") from None
 
     def rig(self) -> tuple[Rig, Pose]:
@@ -521,8 +609,9 @@ def open_recording(path: str | Path, max_joint_gap_s: float = MAX_JOINT_GAP_S) -
     Raises
     ------
     RecordingError
-        Not an MCAP file, not a cathtrack recording, an unknown format version, no joint
-        values, or no marker or image channel. Problems that leave something readable are
-        warnings in ``recording.report`` instead.
+        Not an MCAP file, not a cathtrack recording, an unknown format version or start
+        time, or frames without joint values. Problems that leave something readable are
+        warnings in ``recording.report`` instead (a recording stopped before its first
+        frame is an empty one).
     """
     return Recording(path, max_joint_gap_s)

@@ -180,11 +180,21 @@ def encode_json(obj: Any) -> bytes:
 
 def decode_json(data: bytes) -> Any:
     """Parse JSON (orjson: five times faster than json on the joint blocks); the non-standard
-    NaN/Infinity literals of other writers are accepted too."""
+    NaN/Infinity literals of other writers are accepted too.
+
+    Raises
+    ------
+    ValueError
+        Not JSON, or nested too deeply (orjson's limit of 1024 levels; json's recursion
+        error is turned into this).
+    """
     try:
         return orjson.loads(data)
     except orjson.JSONDecodeError:
-        return json.loads(data)
+        try:
+            return json.loads(data)
+        except RecursionError:
+            raise ValueError("JSON nested too deeply") from None
 
 
 # ------------------------------------------------------------------------------ labels
