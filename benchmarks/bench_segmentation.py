@@ -4,16 +4,16 @@ Run from the repository root: ``python benchmarks/bench_segmentation.py [--frame
 [--load N]``.
 
 Frames of a catheter moving smoothly through random bent configurations (a sequence as a
-camera delivers it at 20 fps), segmented
-as synchronised pairs by :class:`tracker.vision.pair.PairSegmenter` (both views, the epipolar
-check and the tip placed from both views: everything between the cameras and a pipeline
-Frame) in four set-ups, each with its own segmenter, measured in the same run:
+camera delivers it at 20 fps), segmented as synchronised pairs by
+:class:`tracker.vision.pair.PairSegmenter` (both views, the epipolar check and the tip placed
+from both views: everything between the cameras and a pipeline Frame) in four set-ups, each
+with its own segmenter, timed in turn on every frame of the same run:
 
 - plain: no photometric normalisation, a frozen background, the whole image searched (the
-  segmentation before issue 15);
+  photometry of the segmentation before issue 15, with today's detection);
 - normalised: each frame's tone curve fitted to its background, the background model
-  updated (a stripe of rows per frame), the whole image searched: the defaults without the
-  region of interest;
+  updated (a stripe of rows every other frame per camera), the whole image searched: the
+  defaults without the region of interest;
 - ROI, last frame: the defaults: the search starts around the last frame's catheter;
 - ROI, predicted: the search starts around predicted points (here the true points of the
   frame, as the last estimate reprojected would give them).

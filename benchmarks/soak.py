@@ -1,245 +1,417 @@
-"""Soak test of the live loop (not part of the test run; prints only).
+"""Soak of ``cathtrack track`` under bad input (not part of the test run; prints only).
 
-Run from the repository root: ``python benchmarks/soak.py --seconds 600``.
+Run from the repository root: ``python benchmarks/soak.py --minutes 10``.
 
-For ``--seconds`` of wall time, as on the bench:
+``cathtrack track`` runs as its own process, as on the bench, taking markers segmented
+elsewhere and joint values over loopback UDP and recording everything (``--record``). This
+script plays the controller and the external segmenter for ``--minutes``:
 
-- a controller thread streams joint datagrams at ``--joint-rate`` Hz (1 kHz) over loopback
-  UDP, stamped with ``time.monotonic()`` (the loop's JointReceiver uses the ``aligned``
-  clock), and drains the estimate datagrams that come back;
-- a camera thread delivers image pairs at ``--fps`` (30) into a one-slot buffer, stamped at
-  the scheduled exposure time, like two triggered cameras; a pair that the loop has not taken
-  before the next one arrives is dropped (counted), as a camera driver does. Images are
-  rendered for a pool of ``--pool`` poses of one period of a periodic motion
-  and cycled, or synthetic (``--images synthetic``: blank images and the true points handed
-  over as already-segmented markers);
-- the loop segments (rendered images), reconstructs, runs the UKF and sends the estimates.
+- joint datagrams at ``--joint-rate`` Hz (1 kHz) stamped with ``time.monotonic()`` (track
+  uses the sender clock), values of the simulated session's periodic motion;
+- one marker datagram per frame at ``--fps`` (20): both views' points of the catheter at that
+  motion and a fixed true delta_L, with 0.5 px of noise, sent 2 ms after the frame time;
+- after ``--garbage`` (1 %) of the good datagrams of each stream, one bad datagram, taking
+  every kind of garbage in turn (truncated, too long, bad magic, bad version, NaN, values
+  beyond the robot's or the cameras' ranges, a time stamp 1e6 s ahead, a repeat, an old
+  one, random bytes, wrong point or view counts, a zero sigma); never instead of a good one.
 
-At the end: frames captured / processed / dropped, datagram counts, latency percentiles
-(capture time stamp -> estimate ready), the delta_L error against the truth, and memory: the
-resident set size (``resource.getrusage`` peak and ``/proc/self/statm`` over time), plus
-tracemalloc's current and peak with ``--tracemalloc`` (which slows Python down).
+At the end it checks, from track's summary and the estimate datagrams it received:
+
+- memory: track's resident set size over time (``/proc/<pid>/status``) does not grow;
+- every bad item counted: each kind of garbage sent is in track's counts under its reason;
+- every good frame estimated: one estimate datagram per good marker datagram, valid once the
+  filter has started, and the recording reads back complete with every frame and estimate.
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
+import math
+import os
+import re
+import signal
 import socket
+import subprocess
 import sys
-import threading
+import tempfile
 import time
-import tracemalloc
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
-from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
+from _common import ROOT, verdict
 
 from models.catheter import default_catheter  # noqa: E402
+from models.pose import Pose  # noqa: E402
+from models.rig_file import rig_toml  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
-from replay.simulation.render import Renderer, default_render_rig
-from replay.simulation.simulator import default_scene
-from replay.simulation.sources import session_joints
-from tracker.estimators import make_estimator
-from tracker.io.datagrams import SegmentedMarkers, decode_estimate, encode_joints
-from tracker.io.udp import EstimateSender, JointReceiver
-from tracker.live.loop import LiveTracker
-from tracker.live.sources import ImageSet
-from tracker.reconstruction import Reconstructor
+from replay.simulation.render import default_render_rig  # noqa: E402
+from replay.simulation.simulator import (  # noqa: E402
+    NoiseSettings,
+    default_scene,
+    simulate_frames,
+    sinusoidal,
+)
+from replay.simulation.sources import (  # noqa: E402
+    SESSION_AMPLITUDE,
+    SESSION_MEAN,
+    SESSION_PERIOD_S,
+    session_joints,
+)
+from tracker.io.datagrams import (  # noqa: E402
+    JOINT_STRUCT,
+    VERSION,
+    decode_estimate,
+    encode_joints,
+    encode_markers,
+)
+from tracker.io.recording import open_recording  # noqa: E402
 
 DELTA_L_TRUE_RAD = 2.0
+PERIOD_S = float(np.lcm.reduce(np.round(SESSION_PERIOD_S).astype(int)))
+"""The session's motion repeats after this (periods of 16, 9 and 6 s: 144 s)."""
+FRAME_DELAY_S = 0.002  # exposure to marker datagram: the joints are there first
+JOINT_GARBAGE = {
+    # kind: the counter of track's joint receiver it goes to
+    "truncated": "size",
+    "too long": "size",
+    "bad magic": "magic",
+    "bad version": "version",
+    "NaN": "non-finite",
+    "q_r 1e300": "range",
+    "stamped 1e6 s ahead": "time",
+    "repeat": "duplicate",
+    "old": "stale",
+    "random bytes": "magic",
+}
+MARKER_GARBAGE = {
+    # kind: the counter it goes to (datagrams by reason; frames dropped by the loop)
+    "truncated": "size",
+    "bad magic": "magic",
+    "bad version": "version",
+    "wrong point count": "points",
+    "wrong view count": "views",
+    "NaN time": "non-finite",
+    "u 1e300": "range",
+    "zero sigma": "sigma",
+    "repeat": "frame duplicate",
+    "old": "frame out of order",
+    "stamped 1e6 s ahead": "frame too far ahead of the stream",
+}
 
 
-def rss_mb() -> float:
-    """Current resident set size, MB (Linux)."""
+def rss_mb(pid: int) -> float:
+    """Resident set size of a process, MB (Linux)."""
     try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
     except OSError:
-        return float("nan")
-    return pages * resource.getpagesize() / 2**20
+        pass
+    return math.nan
 
 
-class Camera:
-    """Two triggered cameras: a pair per tick into a one-slot buffer (overwrites count)."""
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
-    time_is_monotonic = True
 
-    def __init__(self, items, fps: float, start_s: float, stop: threading.Event):
-        self.items, self.fps, self.start_s, self.stop = items, fps, start_s, stop
-        self.slot = None
-        self.captured = self.dropped = self.late = 0
-        self.cond = threading.Condition()
-        self.thread = threading.Thread(target=self._run, daemon=True)
+class Garbage:
+    """Bad datagrams of every kind, in turn."""
 
-    def _run(self) -> None:
-        n = 0
-        while not self.stop.is_set():
-            stamp = self.start_s + n / self.fps
-            delay = stamp - time.monotonic()
-            if delay > 0 and self.stop.wait(delay):
-                break
-            if delay < -1.0 / self.fps:  # this thread woke up late: skip, as a camera would
-                skipped = int(-delay * self.fps)
-                self.late += skipped
-                n += skipped
-                continue
-            item = self.items[n % len(self.items)]
-            with self.cond:
-                if self.slot is not None:
-                    self.dropped += 1
-                self.slot = item(stamp) if callable(item) else item
-                self.captured += 1
-                self.cond.notify()
-            n += 1
+    def __init__(self, kinds: dict[str, str], rng: np.random.Generator) -> None:
+        self.kinds = list(kinds)
+        self.sent: Counter[str] = Counter()
+        self.rng = rng
+        self._next = 0
 
-    def __iter__(self):
-        while not self.stop.is_set():
-            with self.cond:
-                if self.slot is None:
-                    self.cond.wait(0.05)
-                item, self.slot = self.slot, None
-            yield item
+    def kind(self) -> str:
+        kind = self.kinds[self._next % len(self.kinds)]
+        self._next += 1
+        self.sent[kind] += 1
+        return kind
+
+
+def bad_joint(kind: str, k: int, t: float, good: bytes, history: list[bytes], rng) -> bytes:
+    q, q_dot = session_joints(t % PERIOD_S)
+    if kind == "truncated":
+        return good[:40]
+    if kind == "too long":
+        return good + b"\x00"
+    if kind == "bad magic":
+        return b"XXXX" + good[4:]
+    if kind == "bad version":
+        return good[:4] + (VERSION + 1).to_bytes(2, "little") + good[6:]
+    if kind == "NaN":
+        return encode_joints(k + 1, math.nan, q, q_dot)
+    if kind == "q_r 1e300":
+        return encode_joints(k + 1, t, [1e300, q[1], q[2]], q_dot)
+    if kind == "stamped 1e6 s ahead":
+        return encode_joints(k + 1, t + 1e6, q, q_dot)
+    if kind == "repeat":
+        return good
+    if kind == "old":
+        return history[0]
+    return rng.bytes(JOINT_STRUCT.size)
+
+
+def bad_marker(kind: str, j: int, good: bytes, history: list[bytes], uv, time_s: float) -> bytes:
+    if kind == "truncated":
+        return good[:30]
+    if kind == "bad magic":
+        return b"XXXX" + good[4:]
+    if kind == "bad version":
+        return good[:4] + (VERSION + 1).to_bytes(2, "little") + good[6:]
+    if kind == "wrong point count":
+        return encode_markers(j, time_s, [u[:1] for u in uv], (0.5, 0.5))
+    if kind == "wrong view count":
+        return encode_markers(j, time_s, [*uv, uv[0]], (0.5, 0.5, 0.5))
+    if kind == "NaN time":
+        return good[:16] + np.float64(math.nan).tobytes() + good[24:]
+    if kind == "u 1e300":
+        bad = [u.copy() for u in uv]
+        bad[0][0, 0] = 1e300
+        return encode_markers(j, time_s, bad, (0.5, 0.5))
+    if kind == "zero sigma":
+        return encode_markers(j, time_s, uv, (0.0, 0.5))
+    if kind == "repeat":
+        return good
+    if kind == "old":
+        return history[0]
+    return encode_markers(j, time_s + 1e6, uv, (0.5, 0.5))  # stamped 1e6 s ahead
+
+
+def parse_summary(text: str) -> dict:
+    """The counts of track's summary (the lines it prints when it ends)."""
+    out: dict = {}
+    m = re.search(r"(\d+) of (\d+) frames processed, (\d+) with an estimate", text)
+    if m:
+        out["processed"], out["received"], out["valid"] = map(int, m.groups())
+    m = re.search(r"dropped:(.*)", text)
+    if m:
+        for n, what in re.findall(r"(\d+) ([a-z][a-z ]*?)(?:,|$| \()", m.group(1)):
+            out[f"frame {what.strip()}"] = int(n)
+    for label in ("joint", "marker"):
+        m = re.search(rf"{label} datagrams: (.*)", text)
+        if not m:
+            continue
+        line = m.group(1)
+        words = r"(\d+) (stale|duplicate|received|used)"
+        counts = {what: int(n) for n, what in re.findall(words, line)}
+        tail = line.split("malformed:", 1)[-1] if "malformed:" in line else ""
+        for what, n in re.findall(r"([a-z-]+) (\d+)", tail):
+            counts[what] = int(n)
+        out[label] = counts
+    return out
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--minutes", type=float, default=10.0, help="length of the soak (10)")
+    parser.add_argument("--seconds", type=float, help="length in seconds (instead of minutes)")
     parser.add_argument("--joint-rate", type=float, default=1000.0, help="Hz (1000)")
-    parser.add_argument("--fps", type=float, default=30.0, help="image pairs per second (30)")
-    parser.add_argument("--images", choices=("rendered", "synthetic"), default="rendered")
-    parser.add_argument("--pool", type=int, default=90, help="distinct poses cycled (90)")
-    parser.add_argument("--tracemalloc", action="store_true", help="also trace allocations")
+    parser.add_argument("--fps", type=float, default=20.0, help="frames per second (20)")
+    parser.add_argument("--garbage", type=float, default=0.01, help="fraction of bad items (0.01)")
+    parser.add_argument("--out", help="folder of the rig, recording and track's output (temp)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    duration_s = args.seconds if args.seconds is not None else 60.0 * args.minutes
 
     catheter = default_catheter()
-    scene = default_scene(catheter, default_render_rig())
-    period_s = args.pool / args.fps
-
-    def joints_at(tau_s):
-        """A periodic motion: the session's motion over the first period, repeated."""
-        return session_joints(np.mod(tau_s, period_s))
-
-    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=args.seed)
-    rng = np.random.default_rng(args.seed)
-    segmenter = None
-    pool = []
-    started = time.perf_counter()
-    for k in range(args.pool):
-        q, _ = joints_at(k / args.fps)
-        pair = renderer.render(q, DELTA_L_TRUE_RAD, rng)
-        if args.images == "rendered":
-            images = pair.images
-            pool.append(lambda stamp, images=images: ImageSet(stamp, tuple(images)))
-        else:
-            cov = np.tile(0.25 * np.eye(2), (pair.points_px[0].shape[0], 1, 1))
-            uv = [p + 0.5 * rng.standard_normal(p.shape) for p in pair.points_px]
-            pool.append(
-                lambda stamp, uv=uv, cov=cov: SegmentedMarkers(stamp, tuple(uv), (cov, cov))
-            )
-    if args.images == "rendered":
-        from tracker.vision.pair import PairSegmenter
-
-        segmenter = PairSegmenter(
-            catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
-        )
-    print(
-        f"{args.images} images: {args.pool} poses ({period_s:.1f} s of motion) prepared in"
-        f" {time.perf_counter() - started:.1f} s; soaking for {args.seconds:g} s"
-        f" ({args.joint_rate:g} Hz joints, {args.fps:g} fps pairs)",
-        flush=True,
+    rig = default_render_rig()
+    scene = default_scene(catheter, rig)
+    trajectory = sinusoidal(
+        mean=list(SESSION_MEAN),
+        amplitude=list(SESSION_AMPLITUDE),
+        period_s=list(SESSION_PERIOD_S),
+        duration_s=PERIOD_S,
+        frame_rate_hz=args.fps,
     )
-
-    if args.tracemalloc:
-        tracemalloc.start()
-    stop = threading.Event()
+    rng = np.random.default_rng(args.seed)
+    pool = simulate_frames(
+        scene,
+        trajectory,
+        np.full(trajectory.q.shape[0], DELTA_L_TRUE_RAD),
+        NoiseSettings(sigma=0.5),
+        rng,
+    )
+    out = Path(args.out or tempfile.mkdtemp(prefix="cathtrack-soak-"))
+    out.mkdir(parents=True, exist_ok=True)
+    rig_path, record_path = out / "rig.toml", out / "soak.mcap"
+    rig_path.write_text(rig_toml(rig, Pose(scene.R_w_b, scene.o_b_w_mm)))
+    joints_port, markers_port = free_port(), free_port()
     controller = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     controller.bind(("127.0.0.1", 0))
-    controller.settimeout(0.0005)
-    joints = JointReceiver(port=0, clock="aligned")
-    start_s = time.monotonic() + 0.2
-    estimates = []
-    sent = [0]
-
-    def run_controller() -> None:
-        k = 0
-        while not stop.is_set():
-            now = time.monotonic()
-            while start_s + k / args.joint_rate <= now:
-                t = start_s + k / args.joint_rate
-                controller.sendto(encode_joints(k, t, *joints_at(t - start_s)), joints.address)
-                k += 1
-            try:
-                while True:
-                    estimates.append(decode_estimate(controller.recv(256)))
-            except (TimeoutError, BlockingIOError):
-                pass
-        sent[0] = k
-
-    camera = Camera(pool, args.fps, start_s, stop)
-    tracker = LiveTracker(
-        Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
-        make_estimator("ukf", catheter),
-        [EstimateSender(controller.getsockname())],
-        joints=joints,
-        segmenter=segmenter,
+    controller.setblocking(False)
+    command = [
+        sys.executable, "-m", "replay.cli", "track",
+        "--rig", str(rig_path),
+        "--markers-port", str(markers_port),
+        "--joints-port", str(joints_port),
+        "--joint-clock", "sender",
+        "--estimate-to", f"127.0.0.1:{controller.getsockname()[1]}",
+        "--record", str(record_path),
+        "--idle-timeout", "3",
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    track_out = open(out / "track.txt", "w+")  # noqa: SIM115 - read back at the end
+    track = subprocess.Popen(command, stdout=track_out, stderr=subprocess.STDOUT, env=env)
+    print(
+        f"soak of cathtrack track (pid {track.pid}) for {duration_s:g} s: {args.joint_rate:g} Hz"
+        f" joints, {args.fps:g} fps markers, {100 * args.garbage:g} % garbage; files in {out}",
+        flush=True,
     )
-    memory = [(0.0, rss_mb())]
-    threads = [threading.Thread(target=run_controller, daemon=True), camera.thread]
-    for thread in threads:
-        thread.start()
-    timer = threading.Timer(args.seconds, stop.set)
-    timer.start()
+    deadline = time.monotonic() + 60.0
+    while "Ctrl-C to stop" not in (out / "track.txt").read_text():
+        if track.poll() is not None or time.monotonic() > deadline:
+            print((out / "track.txt").read_text())
+            return 1
+        time.sleep(0.05)
 
-    def progress():
-        last = time.monotonic()
-        for item in camera:
-            now = time.monotonic()
-            if now - last >= max(10.0, args.seconds / 10):
-                last = now
-                memory.append((now - start_s, rss_mb()))
-                s = tracker.summary
+    joint_garbage, marker_garbage = Garbage(JOINT_GARBAGE, rng), Garbage(MARKER_GARBAGE, rng)
+    sent = Counter()
+    estimates = []
+    memory: list[tuple[float, float]] = []
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    start_s = time.monotonic() + 0.2
+
+    def drain() -> None:
+        while True:
+            try:
+                estimates.append(decode_estimate(controller.recv(256)))
+            except BlockingIOError:
+                return
+
+    k = j = 0
+    joint_history: list[bytes] = []
+    marker_history: list[bytes] = []
+    next_report = 0.0
+    joint_to, marker_to = ("127.0.0.1", joints_port), ("127.0.0.1", markers_port)
+    while True:
+        now = time.monotonic()
+        elapsed = now - start_s
+        if elapsed >= duration_s:
+            break
+        while start_s + k / args.joint_rate <= now:
+            t = start_s + k / args.joint_rate
+            good = encode_joints(k, t, *session_joints((t - start_s) % PERIOD_S))
+            sender.sendto(good, joint_to)
+            sent["joints"] += 1
+            joint_history = (joint_history + [good])[-10:]
+            if rng.random() < args.garbage:
+                kind = joint_garbage.kind()
+                sender.sendto(bad_joint(kind, k, t, good, joint_history, rng), joint_to)
+            k += 1
+        while start_s + j / args.fps + FRAME_DELAY_S <= now:
+            frame = pool[j % len(pool)]
+            time_s = start_s + j / args.fps
+            good = encode_markers(j, time_s, frame.uv, (0.5, 0.5))
+            sender.sendto(good, marker_to)
+            sent["frames"] += 1
+            marker_history = (marker_history + [good])[-5:]
+            if rng.random() < args.garbage:
+                kind = marker_garbage.kind()
+                bad = bad_marker(kind, j, good, marker_history, frame.uv, time_s)
+                sender.sendto(bad, marker_to)
+            j += 1
+        drain()
+        if elapsed >= next_report:
+            memory.append((elapsed, rss_mb(track.pid)))
+            if next_report > 0:
                 print(
-                    f"  {now - start_s:6.0f} s: {s.frames_processed} frames, {camera.dropped}"
-                    f" dropped, RSS {memory[-1][1]:.1f} MB",
+                    f"  {elapsed:6.0f} s: {sent['frames']} frames, {len(estimates)} estimates,"
+                    f" track RSS {memory[-1][1]:.1f} MB",
                     flush=True,
                 )
-            yield item
-
-    summary = tracker.run(progress())
-    timer.cancel()
-    stop.set()
-    for thread in threads:
-        thread.join(5.0)
+            next_report += max(10.0, duration_s / 20)
+        time.sleep(0.0005)
+    memory.append((time.monotonic() - start_s, rss_mb(track.pid)))
+    try:
+        track.wait(timeout=60.0)
+    except subprocess.TimeoutExpired:
+        track.send_signal(signal.SIGINT)
+        track.wait(timeout=60.0)
+    time.sleep(0.2)
+    drain()
+    sender.close()
     controller.close()
-    memory.append((time.monotonic() - start_s, rss_mb()))
+    track_out.seek(0)
+    text = track_out.read()
+    track_out.close()
+    print(text.rstrip())
 
-    print(summary)
+    # ---- memory: the resident set after the first minute (imports, buffers warmed up)
+    times = np.array([m[0] for m in memory])
+    rss = np.array([m[1] for m in memory])
+    settled = times >= min(60.0, 0.25 * duration_s)
+    growth = np.polyfit(times[settled], rss[settled], 1)[0] * 60.0 if settled.sum() > 2 else 0.0
+    memory_ok = growth < 0.5 and rss[settled].max() - rss[settled].min() < 20.0
     print(
-        f"camera: {camera.captured} pairs captured, {camera.dropped} dropped by the one-slot"
-        f" buffer (loop too slow), {summary.frames_processed} processed; {camera.late} ticks"
-        f" skipped because the camera thread itself woke up late"
+        f"\nmemory: track RSS {rss[settled][0]:.1f} MB after {times[settled][0]:.0f} s,"
+        f" {rss[-1]:.1f} MB at the end, {rss[settled].min():.1f} to {rss[settled].max():.1f} MB"
+        f" from then on, trend {growth:+.3f} MB/min: {verdict(memory_ok)}"
     )
-    print(f"controller: {sent[0]} joint datagrams sent, {len(estimates)} estimates received")
-    valid = [m for m in estimates[len(estimates) // 10 :] if m.valid]
+
+    # ---- every bad item counted
+    summary = parse_summary(text)
+    counted_ok = True
+    print("garbage sent -> counted by track:")
+    for label, garbage, table in (
+        ("joint", joint_garbage, JOINT_GARBAGE),
+        ("marker", marker_garbage, MARKER_GARBAGE),
+    ):
+        expected = Counter()
+        for kind, n in garbage.sent.items():
+            expected[table[kind]] += n
+        counts = summary.get(label, {})
+        for reason, n in sorted(expected.items()):
+            if reason.startswith("frame "):
+                got = summary.get(reason)
+            else:
+                got = counts.get(reason)
+            ok = got == n
+            counted_ok &= ok
+            kinds = ", ".join(
+                f"{kind} {m}" for kind, m in garbage.sent.items() if table[kind] == reason
+            )
+            print(f"  {label:6s} {reason:20s} sent {n:5d} ({kinds}), counted {got}: {verdict(ok)}")
+
+    # ---- every good frame estimated
+    good_frames = sent["frames"]
+    valid = [m for m in estimates if m.valid]
+    first_valid = next((i for i, m in enumerate(estimates) if m.valid), len(estimates))
+    late_invalid = sum(1 for m in estimates[first_valid:] if not m.valid)
+    estimated_ok = len(estimates) == good_frames and late_invalid == 0
+    print(
+        f"good frames: {good_frames} sent, {len(estimates)} estimate datagrams received,"
+        f" {len(valid)} valid ({first_valid} before the filter started, {late_invalid} invalid"
+        f" after): {verdict(estimated_ok)}"
+    )
     if valid:
-        err = np.degrees(wrap_angle(np.array([m.delta_L_rad for m in valid]) - DELTA_L_TRUE_RAD))
-        lat = 1e3 * np.array([m.latency_s for m in estimates])
+        error = np.degrees(wrap_angle(np.array([m.delta_L_rad for m in valid]) - DELTA_L_TRUE_RAD))
         print(
-            f"delta_L error after the first 10 %: RMS {np.sqrt(np.mean(err**2)):.2f} deg,"
-            f" max {np.max(np.abs(err)):.2f} deg; latency in the datagrams p50"
-            f" {np.median(lat):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms"
+            f"delta_L error: RMS {np.sqrt(np.mean(error**2)):.2f} deg, max"
+            f" {np.max(np.abs(error)):.2f} deg; joints {sent['joints']} good datagrams sent"
         )
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    first = memory[1][1] if len(memory) > 2 else memory[0][1]
+    try:
+        with open_recording(record_path) as recording:
+            n_frames, n_estimates = len(recording), len(recording.estimates.get("ukf", []))
+            report_ok = recording.report.ok
+            warnings = recording.report.warnings
+    except ValueError as error:
+        n_frames = n_estimates = -1
+        report_ok, warnings = False, [str(error)]
+    processed = summary.get("processed")
+    recording_ok = report_ok and n_frames == processed == n_estimates
     print(
-        f"memory: RSS {memory[0][1]:.1f} MB at start, {first:.1f} MB at the first report,"
-        f" {memory[-1][1]:.1f} MB at the end, peak {peak_mb:.1f} MB (getrusage)"
+        f"recording {record_path.name}: {n_frames} frames, {n_estimates} estimates"
+        f" (track processed {processed}), read report {'clean' if report_ok else warnings}:"
+        f" {verdict(recording_ok)}"
     )
-    if args.tracemalloc:
-        current, peak = tracemalloc.get_traced_memory()
-        print(f"tracemalloc: {current / 2**20:.2f} MB current, {peak / 2**20:.2f} MB peak")
-    return 0
+    ok = memory_ok and counted_ok and estimated_ok and recording_ok and track.returncode == 0
+    print(f"soak: {verdict(ok)} (track exit code {track.returncode})")
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

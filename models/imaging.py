@@ -376,6 +376,10 @@ class Rig:
     def __setattr__(self, name, value):
         raise AttributeError("a Rig is immutable")
 
+    def __reduce__(self):
+        # Pickled (to another process) as its views and names, rebuilt through __init__.
+        return (_rig_of, (self.views, self.names))
+
     def __repr__(self) -> str:
         inner = ", ".join(f"{n}={v!r}" for n, v in zip(self.names, self.views, strict=True))
         return f"Rig({inner})"
@@ -539,6 +543,11 @@ class Rig:
 
 
 # -------------------------------------------------------------------------------- defaults
+def _rig_of(views, names) -> Rig:
+    """A Rig of views and names (what a pickled Rig is rebuilt from)."""
+    return Rig(*views, names=names)
+
+
 def default_orthographic_rig() -> Rig:
     """Front (AP) plane with normal -y and side (lateral) plane with normal +x; v = world z.
 

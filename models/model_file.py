@@ -109,7 +109,7 @@ def check_header(
     if found != fmt:
         raise error(f"{source}: 'format' must be \"{fmt}\", got {found!r}")
     found = data.get("version")
-    if found != version:
+    if found != version or type(found) is not int:  # true and 1.0 are not the integer 1
         raise error(
             f"{source}: unsupported {what} version {found!r} (this cathtrack reads version "
             f"{version})"

@@ -108,6 +108,11 @@ def _array(
     return array
 
 
+def _one_line(error: BaseException) -> str:
+    """An error's message on one line (numpy prints matrices over several)."""
+    return " ".join(str(error).split())
+
+
 def _short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
@@ -212,7 +217,7 @@ def camera_from_table(table: Any, where: str) -> PinholeView:
     try:
         view = PinholeView(K, R, t, dist, size)
     except ValueError as exc:
-        raise RigFileError(f"{where}: {exc}") from None
+        raise RigFileError(f"{where}: {_one_line(exc)}") from None
     if "normal_w" in table:
         n = _unit_normal(table, where)
         angle = np.arccos(np.clip(n @ -view.R_cam_w[2], -1.0, 1.0))
@@ -328,11 +333,11 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig", model: str = "pinho
             try:
                 views.append(OrthographicPlane.from_normal(_unit_normal(table, where), angle))
             except ValueError as exc:
-                raise RigFileError(f"{where}: {exc}") from None
+                raise RigFileError(f"{where}: {_one_line(exc)}") from None
     try:
         return Rig(*views, names=names)
     except ValueError as exc:
-        raise RigFileError(f"{source}: {exc}") from None
+        raise RigFileError(f"{source}: {_one_line(exc)}") from None
 
 
 def view_names(data: dict[str, Any], source: str = "rig") -> tuple[str, ...]:
@@ -366,7 +371,7 @@ def read_rig_file(path: str | Path) -> dict[str, Any]:
     try:
         return tomllib.loads(text)
     except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise RigFileError(f"{path}: malformed TOML: {exc}") from None
+        raise RigFileError(f"{path}: malformed TOML: {_one_line(exc)}") from None
 
 
 def load_rig(path: str | Path, model: str = "pinhole") -> Rig:
@@ -416,7 +421,7 @@ def base_from_dict(data: dict[str, Any], source: str = "rig") -> Pose | None:
     try:
         return Pose(nearest, o_b_w_mm)
     except ValueError as exc:
-        raise RigFileError(f"{where}: {exc}") from None
+        raise RigFileError(f"{where}: {_one_line(exc)}") from None
 
 
 def rig_from_toml(
@@ -429,7 +434,7 @@ def rig_from_toml(
     try:
         data = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise RigFileError(f"{source}: malformed TOML: {exc}") from None
+        raise RigFileError(f"{source}: malformed TOML: {_one_line(exc)}") from None
     rig = rig_from_dict(data, source, model or written_model(data, source))
     return rig, base_from_dict(data, source)
 

@@ -106,11 +106,16 @@ class DemoSettings:
 
 
 # -------------------------------------------------------------------------- controller
+def _joints_before(joints_at: Callable, lead_s: float, time_s: float):
+    """The motion ``joints_at`` for a stream started ``lead_s`` before its time 0."""
+    return joints_at(time_s - lead_s)
+
+
 def _controller(conn, joints_at: Callable, rate_hz: float) -> None:
     """The simulated controller's process: joints out at ``rate_hz``, estimates in, counted.
 
     Speaks over ``conn``: sends its estimate address; takes ``("start", joints_to,
-    start_s)`` and then ``("stop", expected, timeout_s)``, after which it waits up to
+    start_s, lead_s)`` and then ``("stop", expected, timeout_s)``, after which it waits up to
     ``timeout_s`` for ``expected`` estimates and answers with its counts.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
@@ -137,7 +142,11 @@ def _controller(conn, joints_at: Callable, rate_hz: float) -> None:
                 except EOFError:  # the demo has gone
                     break
                 if command[0] == "start":
-                    streamer = JointStreamer(command[1], joints_at, rate_hz, start_s=command[2])
+                    _, joints_to, start_s, lead_s = command
+                    # Streaming from lead_s before the session's time 0, as a controller
+                    # that runs before the cameras start.
+                    motion = functools.partial(_joints_before, joints_at, lead_s)
+                    streamer = JointStreamer(joints_to, motion, rate_hz, start_s=start_s - lead_s)
                     streamer.start()
                 else:
                     if streamer is not None:
@@ -189,9 +198,12 @@ class SimulatedController:
         self.estimate_address: tuple[str, int] = tuple(self._conn.recv())
         self._stopped = False
 
-    def start(self, joints_to: tuple[str, int], start_s: float) -> SimulatedController:
-        """Stream joint sample ``k`` at ``start_s + k / rate_hz`` (monotonic) to ``joints_to``."""
-        self._conn.send(("start", tuple(joints_to), float(start_s)))
+    def start(
+        self, joints_to: tuple[str, int], start_s: float, lead_s: float = 0.0
+    ) -> SimulatedController:
+        """Stream the motion's joints to ``joints_to``, its time 0 at ``start_s`` (monotonic),
+        from ``lead_s`` before it: sample ``k`` at ``start_s - lead_s + k / rate_hz``."""
+        self._conn.send(("start", tuple(joints_to), float(start_s), float(lead_s)))
         return self
 
     def stop(self, expected: int | None = None, timeout_s: float = 1.0) -> None:
@@ -302,6 +314,18 @@ class ScoreSink:
         """Nothing to release: the viewer sink this one writes through is closed on its own."""
 
 
+@dataclass(frozen=True)
+class DemoResult:
+    """What a demo run measured (for benchmarks; the table prints the same)."""
+
+    summary: LiveSummary
+    scores: dict[str, MethodScore]
+    estimates_sent: int
+    estimates_received: int
+    late_frames: int
+    render_ms: float
+
+
 # ------------------------------------------------------------------------------ report
 def _ms(value: float) -> str:
     return f"{value:.1f}" if math.isfinite(value) else "-"
@@ -391,6 +415,7 @@ def run_demo(
     *,
     out: Callable[[str], None] = print,
     report: Callable[[str], None] = _report_stderr,
+    on_result: Callable[[DemoResult], None] | None = None,
 ) -> int:
     """Run the demo; print its table with ``out``. Returns 0, or 130 after Ctrl-C.
 
@@ -399,6 +424,8 @@ def run_demo(
     settings : DemoSettings
     rerun_args : argparse.Namespace
         The flags of :func:`tracker.viewer.output.add_rerun_args` (``save``, ``connect``...).
+    on_result : callable, optional
+        Receives the :class:`DemoResult` once the run is over.
     """
     catheter = default_catheter()
     scene = default_scene(catheter, default_render_rig())
@@ -475,7 +502,7 @@ def run_demo(
                 )
             start_s = time.monotonic() + settings.start_delay_s
             cameras.start(start_s)
-            controller.start(live.joints.address, start_s)
+            controller.start(live.joints.address, start_s, lead_s=settings.start_delay_s)
             try:
                 summary = live.run(cameras)  # closes the sinks, the receiver and the source
             finally:
@@ -493,6 +520,17 @@ def run_demo(
             )
             for line in lines:
                 out(line)
+            if on_result is not None:
+                on_result(
+                    DemoResult(
+                        summary,
+                        scorer.scores,
+                        live.sender.sent,
+                        controller.received,
+                        cameras.late,
+                        cameras.render_ms,
+                    )
+                )
             if output is not None and output.served_url is not None and not summary.interrupted:
                 serve_until_interrupted(output, out)
     except KeyboardInterrupt:  # Ctrl-C before the loop took it over

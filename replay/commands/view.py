@@ -121,16 +121,18 @@ def view_recording(
             raise ValueError("nowhere to show it: give --save FILE, --connect, --spawn or --serve")
         out(f"cathtrack view: {Path(path).name} to {'; '.join(output.targets)}")
         sink = RerunSink(output.stream, primary=primary, jpeg_quality=85)
-        joints = recording.joints
-        step = max(1, joints.time_s.size // MAX_JOINT_SAMPLES)
-        sink.log_joints(joints.time_s[::step], joints.q[::step])
-        frames = _scene_frames(replay, recording, frame_every, images)
-        log_replay(sink, replay, frames, estimates)
-    if output.served_url is not None:
-        sink.stream.flush()
-        serve_until_interrupted(output, out)
-    sink.close()
-    output.close()
+        try:
+            joints = recording.joints
+            step = max(1, joints.time_s.size // MAX_JOINT_SAMPLES)
+            sink.log_joints(joints.time_s[::step], joints.q[::step])
+            frames = _scene_frames(replay, recording, frame_every, images)
+            log_replay(sink, replay, frames, estimates)
+            if output.served_url is not None:
+                sink.stream.flush()
+                serve_until_interrupted(output, out)
+        finally:
+            sink.close()
+            output.close()
     return 0
 
 

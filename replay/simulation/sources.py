@@ -157,23 +157,27 @@ def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max
     pairs the cameras have released; a failure goes to ``pairs`` as its message.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
-    pairs.cancel_join_thread()  # exit without waiting for a reader that stopped reading
     try:
         rng = np.random.default_rng(seed)
         for k in range(len(q)):
             while k - released.value >= max_ahead:
                 if stop.wait(0.005):
-                    return
+                    break
             if stop.is_set():
-                return
+                break
             started = time.perf_counter()
             images = renderer.render(q[k], delta_L_rad[k], rng).images
             pairs.put((k, tuple(images)))
             with progress.get_lock():
                 progress[0] += 1
                 progress[1] += time.perf_counter() - started
+        # The queue's pairs are still on their way: stay until they are all taken.
+        while released.value < len(q) and not stop.wait(0.05):
+            pass
     except Exception as exc:  # handed to the cameras, which raise it in the loop's thread
         pairs.put((-1, f"{type(exc).__name__}: {exc}"))
+    if stop.is_set():
+        pairs.cancel_join_thread()  # the cameras stopped reading: do not wait for them
 
 
 class SimulatedCameras:

@@ -1,12 +1,13 @@
-"""The renderer: images of the right geometry, seeded, and checkerboards at known poses."""
+"""The renderer: images of the right geometry, seeded, checkerboards at known poses, and the
+imaging nuisances (and a recording made with them replays as accurately)."""
 
 import numpy as np
 import pytest
 
 from models.catheter import default_catheter
+from models.imaging import PinholeView
 from replay import evaluation
 from replay.protocol import ProtocolSettings, simulate_protocol
-from models.imaging import PinholeView
 from replay.simulation.render import (
     CatheterPose,
     ImagingChange,

@@ -43,25 +43,25 @@ from tracker.estimators.measurement import (
     deviation_jacobian,
     deviation_prior,
     expansion_basis,
-    inlier_probability,
     jump_probability,
     mixture_log_likelihood,
     model_error_covariance,
     offered_velocity,
+    outlier_threshold,
     process_variance,
     quadratic_moments,
-    rotation_invariant,
     velocity_offered,
     wrap,
 )
 from tracker.estimators.ukf import check_observation, observation_groups
-from tracker.estimators.ukf_core import spd_inverse
+from tracker.estimators.ukf_core import cholesky, spd_inverse
 from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Estimate, Flag, Observation
 
 Array = np.ndarray
 DEFAULT_CELLS = 4096
 _LOG_2PI = math.log(2.0 * math.pi)
+_TWO_PI = 2.0 * math.pi
 
 
 class GridFilter:
@@ -93,7 +93,7 @@ class GridFilter:
         self.cells = int(cells)
         self.cell_rad = 2 * math.pi / self.cells
         self.angles = -math.pi + self.cell_rad * np.arange(self.cells)
-        self._cos, self._sin = np.cos(self.angles), np.sin(self.angles)
+        self._turn = np.exp(1j * self.angles)
         self._k2 = np.arange(self.cells // 2 + 1, dtype=float) ** 2
         self._expansion = ShapeExpansion(catheter)
         self.reset()
@@ -105,11 +105,13 @@ class GridFilter:
         self._deviation = s.estimates_deviation
         self.mu = np.zeros((self.cells, 2))
         self.Sigma = np.diag(deviation_prior(np.zeros((1, 3)), s.joint_error_mm, 0.0)[0])
+        self._pending_variance = 0.0
         self._initialised = False
         self._time_s = math.nan
         self._q = np.full(3, np.nan)
         self._tip_fused = np.zeros(1, dtype=bool)
         self._rejected = 0
+        self._moments = None
 
     @property
     def initialised(self) -> bool:
@@ -117,11 +119,18 @@ class GridFilter:
 
     def moments(self) -> tuple[float, float]:
         """Circular mean and std of the posterior, rad."""
-        p = self.p
-        mean = math.atan2(float(p @ self._sin), float(p @ self._cos))
-        spread = wrap(self.angles - mean)
-        var = float(p @ (spread * spread)) + self.cell_rad**2 / 12.0
-        return float(wrap(mean)), math.sqrt(var)
+        if self._moments is None:
+            p = self.p
+            z = p @ self._turn
+            mean = math.atan2(z.imag, z.real)
+            spread = self.angles - mean
+            spread -= _TWO_PI * np.rint(spread / _TWO_PI)
+            var = float(p @ (spread * spread)) + self.cell_rad**2 / 12.0
+            self._moments = (float(wrap(mean)), math.sqrt(var))
+        return self._moments
+
+    def _cell(self, angle: float) -> int:
+        return int(round((angle + math.pi) / self.cell_rad)) % self.cells
 
     def step(self, observation: Observation) -> Estimate:
         """Predict the posterior to the frame's time and multiply in the frame's likelihood."""
@@ -137,7 +146,7 @@ class GridFilter:
         Q = float(process_variance(s.process_noise_rad2_s, s.rotation_noise_gain_rad, dt, turn))
         if self._deviation:
             prior = deviation_prior(q[None], s.joint_error_mm, s.gain_error)[0]
-            a = float(deviation_decay(moved, s.deviation_length_mm))
+            a = float(deviation_decay(moved, s.deviation_length_mm, dt, s.deviation_rate_per_s))
             self.mu *= a
             self.Sigma = a * a * self.Sigma + (1 - a * a) * np.diag(prior)
         if self._initialised:
@@ -154,24 +163,23 @@ class GridFilter:
         else:
             radius = float(groups.radius_mm()[0])
             three_d = isinstance(groups, FrameGroups)
-            d2, log_lik, residual, S, J = self._likelihood(groups, Q, dt)
-            log_post = np.log(np.maximum(self.p, 1e-300)) + log_lik
-            log_post -= log_post.max()
-            p = np.exp(log_post)
-            self.p = p / p.sum()
-            mean, _ = self.moments()
-            at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
             present = groups.present[0]
-            inlier = present & (
-                inlier_probability(d2[:, at], groups.dim, s.outlier_probability,
-                                   s.outlier_scale) >= 0.5
-            )  # fmt: skip
+            if three_d:
+                d2, log_lik, residual, update = self._likelihood_3d(groups, Q, dt, present)
+            else:
+                d2, log_lik = self._likelihood_views(groups)
+            self._multiply(log_lik)
+            mean, _ = self.moments()
+            inlier = present.copy()
+            inlier[present] = d2[self._cell(mean)] <= outlier_threshold(
+                groups.dim, s.outlier_probability, s.outlier_scale
+            )
             rejected = int(np.sum(present & ~inlier))
             if rejected:
                 flags |= Flag.OUTLIER_REJECTED
             tip_fused = bool(three_d and inlier[0])
             if three_d and self._deviation and inlier.any():
-                self._update_deviation(J, inlier, residual, S)
+                update(inlier[present])
         self._tip_fused[0] = tip_fused
         self._rejected += rejected
         mean, std = self.moments()
@@ -184,18 +192,32 @@ class GridFilter:
                 rejected_outliers=self._rejected,
             )  # fmt: skip
         if self._deviation:
-            at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
             prior = deviation_prior(q[None], s.joint_error_mm, s.gain_error)[0]
-            if np.any(self.mu[at] ** 2 > 9.0 * prior):
+            if np.any(self.mu[self._cell(mean)] ** 2 > 9.0 * prior):
                 flags |= Flag.MODEL_MISMATCH
         return Estimate(
             time_s=t, delta_L_rad=mean, std_rad=std, q_r_rad=float(q[0]), flags=flags,
             informative_radius_mm=radius, rejected_outliers=self._rejected,
         )  # fmt: skip
 
+    def _multiply(self, log_lik: Array) -> None:
+        """Posterior = prior x likelihood, normalised."""
+        p = self.p * np.exp(log_lik - log_lik.max())
+        total = p.sum()
+        if not (total > 1e-250 and math.isfinite(total)):
+            # The likelihood's peak lies where the prior has (numerically) no mass: in logs.
+            log_post = np.log(np.maximum(self.p, 1e-300)) + log_lik
+            p = np.exp(log_post - log_post.max())
+            total = p.sum()
+        self.p = p / total
+        self._moments = None
+
     def _predict(self, variance: float, jump: float) -> None:
+        # A variance much below a cell's only blurs within it: it accumulates until it shows.
+        variance += self._pending_variance
+        self._pending_variance = 0.0
         p = self.p
-        if variance > 0:
+        if variance > 0.01 * self.cell_rad**2:
             # The wrapped normal's Fourier coefficients at the integer frequencies of the grid.
             kernel = np.exp(-0.5 * variance * self._k2)
             p = np.maximum(np.fft.irfft(np.fft.rfft(self.p) * kernel, self.cells), 0.0)
@@ -204,75 +226,87 @@ class GridFilter:
                                         * kernel[:, None], self.cells, axis=0)  # fmt: skip
                 self.mu = weighted / np.maximum(p, 1e-300)[:, None]
             p /= p.sum()
+        else:
+            self._pending_variance = variance
         if jump > 0:
             mixed = (1.0 - jump) * p + jump / self.cells
             # A jump lands anywhere with the deviation's prior mean (zero).
             self.mu *= ((1.0 - jump) * p / mixed)[:, None]
             p = mixed
         self.p = p
+        self._moments = None
 
-    def _likelihood(self, groups, Q: float, dt: float):
-        """Per group and cell d^2 (G, N), the frame's log-likelihood on every cell (N,), and
-        for 3-D data the residuals (N, G, 3) and the group covariances (G, 3, 3)."""
+    def _likelihood_3d(self, groups: FrameGroups, Q: float, dt: float, present: Array):
+        """Per cell and present group d^2 (N, G'), the frame's log-likelihood (N,), the
+        model-frame residuals (N, 3 G') and the Kalman update of the deviation means."""
         s = self.settings
-        present = groups.present[0]
-        dim = groups.dim
-        if isinstance(groups, FrameGroups):
-            M = model_error_covariance(
-                groups, s.joint_error_white_mm, s.velocity_relative_error, np.array([Q]),
-                np.array([dt]),
-            )[0]  # fmt: skip
-            J = groups.J[0]
-            if self._deviation:
-                mean, _ = self.moments()
-                at = int(round((mean + math.pi) / self.cell_rad)) % self.cells
-                J = deviation_jacobian(J, groups.K[0], self.mu[at])
-            S = rotation_invariant(groups.R[0]) + M
-            if self._deviation:
-                bias, spread = quadratic_moments(groups.K[0], self.Sigma)
-                S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
-            S = np.where(present[:, None, None], S, np.eye(3))
-            W = spd_inverse(S)
-            logdet = np.linalg.slogdet(S)[1]
-            y, c = groups.y[0], groups.c[0]
-            q_r = float(groups.q_r[0])
-            cq, sq = math.cos(q_r), math.sin(q_r)
-            cos = (cq * self._cos - sq * self._sin)[:, None]
-            sin = (sq * self._cos + cq * self._sin)[:, None]
-            # Rz(delta_1)^T y - c in the model frame, every cell and group.
-            residual = np.empty((self.cells,) + y.shape)
-            residual[..., 0] = cos * y[:, 0] + sin * y[:, 1] - c[:, 0]
-            residual[..., 1] = cos * y[:, 1] - sin * y[:, 0] - c[:, 1]
-            residual[..., 2] = y[:, 2] - c[:, 2]
-            if self._deviation:
-                basis = expansion_basis(self.mu)  # (N, 5)
-                residual -= np.einsum("gij,nj->ngi", groups.JK[0], basis) + bias
-            d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
-        else:
-            S = groups.R[0]
-            W = spd_inverse(S)
-            logdet = np.linalg.slogdet(S)[1]
-            predicted = groups.predict(np.array([0]), self.angles[None, :, None])[0]
-            residual = groups.z[0][None] - predicted  # (N, G, 2)
-            d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
-            J = None
-        terms = mixture_log_likelihood(d2[present], dim, s.outlier_probability, s.outlier_scale)
-        log_lik = terms.sum(axis=0) - 0.5 * float(np.sum(logdet[present] + dim * _LOG_2PI))
-        return d2, log_lik, residual, S, J
+        M = model_error_covariance(
+            groups, s.joint_error_white_mm, s.velocity_relative_error, np.array([Q]),
+            np.array([dt]),
+        )[0][present]  # fmt: skip
+        y, c, JK = groups.y[0][present], groups.c[0][present], groups.JK[0][present]
+        S = groups.R_bar[0][present] + M
+        if self._deviation:
+            # The deviation enters with its Jacobian at the posterior mean's deviation, and
+            # its quadratic term with the mean and spread of the shared covariance.
+            J = deviation_jacobian(JK[..., :2], JK[..., 2:], self.mu[self._cell(self.moments()[0])])
+            bias, spread = quadratic_moments(JK[..., 2:], self.Sigma)
+            S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
+            c = c + bias
+        G = y.shape[0]
+        # Rz(q_r + delta)^T y - c = [cos, sin, 1] A for every cell and group: (N, 3G).
+        A = np.empty((3, G, 3))
+        A[0, :, 0], A[0, :, 1], A[0, :, 2] = y[:, 0], y[:, 1], 0.0
+        A[1, :, 0], A[1, :, 1], A[1, :, 2] = y[:, 1], -y[:, 0], 0.0
+        A[2, :, 0], A[2, :, 1], A[2, :, 2] = -c[:, 0], -c[:, 1], y[:, 2] - c[:, 2]
+        turned = self._turn * complex(math.cos(groups.q_r[0]), math.sin(groups.q_r[0]))
+        basis = np.empty((self.cells, 3))
+        basis[:, 0], basis[:, 1], basis[:, 2] = turned.real, turned.imag, 1.0
+        residual = basis @ A.reshape(3, 3 * G)
+        if self._deviation:
+            residual -= expansion_basis(self.mu) @ np.moveaxis(JK, -1, 0).reshape(5, 3 * G)
+        # Whitened by each group's Cholesky factor: d^2 = |L^-1 r|^2.
+        L, _ = cholesky(S)
+        whitening = np.zeros((G, 3, G, 3))
+        whitening[np.arange(G), :, np.arange(G), :] = np.swapaxes(np.linalg.inv(L), -1, -2)
+        white = residual @ whitening.reshape(3 * G, 3 * G)
+        white *= white
+        d2 = white @ np.repeat(np.eye(G), 3, axis=0)  # sums of three squares, (N, G)
+        logdet = 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)))
+        terms = mixture_log_likelihood(d2, 3, s.outlier_probability, s.outlier_scale)
+        log_lik = terms @ np.ones(G) - 0.5 * (logdet + 3 * G * _LOG_2PI)
 
-    def _update_deviation(self, J: Array, inlier: Array, residual: Array, S_g: Array) -> None:
+        def update(inlier: Array) -> None:
+            if self._deviation:
+                self._update_deviation(J, S, inlier, residual)
+
+        return d2, log_lik, residual, update
+
+    def _likelihood_views(self, groups):
+        """Per cell and point d^2 (N, G) and the frame's log-likelihood (N,), single views."""
+        s = self.settings
+        cov = groups.R[0]
+        W = spd_inverse(cov)
+        logdet = np.linalg.slogdet(cov)[1]
+        predicted = groups.predict(np.array([0]), self.angles[None, :, None])[0]
+        residual = groups.z[0][None] - predicted  # (N, G, 2)
+        d2 = np.einsum("ngi,gij,ngj->ng", residual, W, residual)
+        terms = mixture_log_likelihood(d2, 2, s.outlier_probability, s.outlier_scale)
+        return d2, terms.sum(axis=1) - 0.5 * float(np.sum(logdet + 2 * _LOG_2PI))
+
+    def _update_deviation(self, J: Array, S_g: Array, inlier: Array, residual: Array) -> None:
         """Kalman update of every cell's deviation mean with the inlying groups (one gain,
         with the Jacobian J (G, 3, 2) at the deviation of the posterior mean)."""
         J_in = J[inlier]
+        k = J_in.shape[0]
         noise = S_g[inlier] - J_in @ self.Sigma @ np.swapaxes(J_in, -1, -2)
-        k = int(inlier.sum())
-        R = np.zeros((3 * k, 3 * k))
-        for i in range(k):
-            R[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = noise[i]
+        R = np.zeros((k, 3, k, 3))
+        R[np.arange(k), :, np.arange(k), :] = noise
         H = J_in.reshape(-1, 2)
-        S = H @ self.Sigma @ H.T + R
+        S = H @ self.Sigma @ H.T + R.reshape(3 * k, 3 * k)
         gain = np.linalg.solve(S, H @ self.Sigma).T  # (2, m)
-        self.mu = self.mu + residual[:, inlier].reshape(self.cells, -1) @ gain.T
+        columns = np.repeat(inlier, 3)
+        self.mu += residual[:, columns] @ gain.T
         Sigma = self.Sigma - gain @ S @ gain.T
         self.Sigma = 0.5 * (Sigma + Sigma.T)
 

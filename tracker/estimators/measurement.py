@@ -299,7 +299,9 @@ def velocity_offered(settings, tip_fused: Array) -> Array:
     """Which of B filters fuse a velocity in their next step (``settings``: UKFSettings).
 
     A finite-difference velocity decorrelated from its frame's tip measures the previous
-    tip: it is offered only where the previous step fused no tip (``tip_fused`` (B,)).
+    tip: it is offered only where the previous step did not use a tip (``tip_fused`` (B,):
+    the previous tip was there and no outlier, even if the frame was too uninformative to
+    update; a velocity would repeat it with as little information).
     """
     if not settings.use_velocity:
         return np.zeros(tip_fused.shape, dtype=bool)
@@ -613,13 +615,17 @@ def deviation_prior(q: Array, joint_error_mm: float, gain_error: float) -> Array
     return joint_error_mm * joint_error_mm + bend * bend
 
 
-def deviation_decay(moved_mm: Array, length_mm: float) -> Array:
+def deviation_decay(
+    moved_mm: Array, length_mm: float, dt_s: Array = 0.0, rate_per_s: float = 0.0
+) -> Array:
     """Correlation of the deviation across a frame in which the joints moved ``moved_mm``.
 
-    An Ornstein-Uhlenbeck process in the joint travel: ``exp(-moved / length)``, so that the
-    deviation forgets over ``length_mm`` of joint motion and stays while the joints hold.
+    An Ornstein-Uhlenbeck process in the joint travel and in time: ``exp(-moved / length -
+    rate dt)``, so that the deviation forgets over ``length_mm`` of joint motion (a new
+    configuration, a new contact) and, slowly, while the joints hold (a contact made or
+    released).
     """
-    return np.exp(-np.abs(moved_mm) / length_mm)
+    return np.exp(-np.abs(moved_mm) / length_mm - rate_per_s * dt_s)
 
 
 def group_coefficients(y: Array, c: Array, W: Array, q_r: Array) -> Array:

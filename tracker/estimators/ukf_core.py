@@ -399,7 +399,7 @@ class FilterBank:
         P[:, 0, 0] += Q[b]
         if self.deviation is not None:
             k = self.deviation
-            a = deviation_decay(moved[b], s.deviation_length_mm)
+            a = deviation_decay(moved[b], s.deviation_length_mm, dt[b], s.deviation_rate_per_s)
             scale = np.ones((b.size, n))
             scale[:, k : k + 2] = a[:, None]
             x = x * scale
@@ -494,7 +494,9 @@ class FilterBank:
             all_rejected = touched & held & ((st & _F["OUTLIER_REJECTED"]) != 0)
             self.bad_run = np.where(touched & ~all_rejected, 0, self.bad_run)
             fused_tip |= touched & update.fused_tip[row]
-            spawn = all_rejected & three_d
+            # Data the leading hypothesis does not explain, in part or as a whole: weigh a
+            # hypothesis started from the frame alone against it.
+            spawn = touched & ((st & _F["OUTLIER_REJECTED"]) != 0) & three_d
             if s.estimate_noise:
                 self._adapt_noise(touched, out.nis, out.nis_dof)
         if three_d:
@@ -531,20 +533,6 @@ class FilterBank:
         slope[..., 0], slope[..., 1] = -model[..., 1], model[..., 0]
         group_information = np.einsum("bgi,bgij,bgj->bg", slope, W, slope)
         fit = self._fit(coefficients, group_information, present)
-        # A gross error among the groups: the worst one, if beyond the outlier threshold at
-        # the fit and not alone, is left out and the frame fitted again.
-        d2 = np.einsum("bgk,kb->bg", coefficients, trig_table(fit.delta_L_rad))
-        d2 = np.where(present, d2, -np.inf)
-        worst = np.argmax(d2, axis=1)
-        drop = (d2[np.arange(b.size), worst] > outlier_threshold(
-            3, s.outlier_probability, s.outlier_scale)) & (present.sum(axis=1) > 1)  # fmt: skip
-        if drop.any():
-            present = present.copy()
-            present[np.flatnonzero(drop), worst[drop]] = False
-            refit = self._fit(coefficients[drop], group_information[drop], present[drop])
-            fit = _merge_fits(fit, refit, drop)
-            self.rejected[b[drop]] += 1
-            flags[b[drop]] |= _F["OUTLIER_REJECTED"]
         dof = fit.dof
         std = fit.std_rad
         if s.initial_std_rad is not None:
@@ -553,7 +541,13 @@ class FilterBank:
             fit.sign_evidence >= s.min_sign_evidence
         )
         gates = np.array([gate_threshold(s.gate_probability, max(int(d) - 1, 1)) for d in dof])
-        consistent = fit.cost <= gates
+        # Consistent: the cost within its chi-square gate, and no group a gross error at the
+        # fit (a frame with a wrong point would start the filter off by its error).
+        d2 = np.einsum("bgk,kb->bg", coefficients, trig_table(fit.delta_L_rad))
+        worst = np.max(np.where(present, d2, 0.0), axis=1)
+        consistent = (fit.cost <= gates) & (
+            worst <= outlier_threshold(3, s.outlier_probability, s.outlier_scale)
+        )
         misfit = np.sqrt(np.maximum(1.0, fit.cost / np.maximum(dof - 1, 1)))
         good = informative & consistent
         bad = informative & ~consistent
@@ -757,18 +751,8 @@ class FilterBank:
         return _Update(
             b=b, h=h, status=status, nis=np.where(shown, nis, np.nan),
             dof=np.where(shown, d * n_in, 0), rejected=outlier.sum(-1), inlier=inlier,
-            fused_tip=done & inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
+            fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
         )  # fmt: skip
-
-
-def _merge_fits(fit: FrameFit, refit: FrameFit, where: Array) -> FrameFit:
-    """``fit`` with the trials ``where`` (a mask) replaced by ``refit`` (one per True)."""
-    merged = {}
-    for name in ("delta_L_rad", "cost", "information", "sign_evidence", "dof"):
-        values = np.array(getattr(fit, name), copy=True)
-        values[where] = getattr(refit, name)
-        merged[name] = values
-    return FrameFit(**merged)
 
 
 def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:

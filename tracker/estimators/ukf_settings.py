@@ -59,8 +59,9 @@ class UKFSettings:
         Relative error of the bending gain (the modal matrices); adds ``gain_error * q`` to
         the prior std of the deviation of each joint.
     deviation_length_mm : float
-        Joint travel over which the deviation decorrelates, mm (it holds while the joints
-        hold).
+        Joint travel over which the deviation decorrelates, mm.
+    deviation_rate_per_s : float
+        Rate at which it decorrelates while the joints hold, 1/s (a contact made or released).
     joint_error_white_mm : float
         Joint-equivalent model error that changes from frame to frame, mm.
     velocity_relative_error : float
@@ -124,6 +125,7 @@ class UKFSettings:
     joint_error_mm: float = 0.1
     gain_error: float = 0.05
     deviation_length_mm: float = 1.0
+    deviation_rate_per_s: float = 0.5
     joint_error_white_mm: float = 0.01
     velocity_relative_error: float = 0.1
     use_velocity: bool = True
@@ -159,6 +161,7 @@ class UKFSettings:
             "process_noise_rad2_s", "rotation_noise_gain_rad", "jump_rate_per_s", "jump_per_rad",
             "rate_process_noise_rad2_s3", "joint_error_mm", "gain_error",
             "joint_error_white_mm", "velocity_relative_error", "min_sign_evidence", "beta",
+            "deviation_rate_per_s",
         ):  # fmt: skip
             finite(name)
         for name in (

@@ -18,8 +18,9 @@ MAX_ANGLE_RAD = 100.0
 JOINT_VALUE_LIMITS = np.array([MAX_ANGLE_RAD, 100.0, 100.0])
 """|q_r| rad, |q_p| and |q_d| mm (a tendon's whole stroke; the model's calibrated range is
 about 1 mm)."""
-JOINT_RATE_LIMITS = np.array([100.0, 1000.0, 1000.0])
-"""|q_r_dot| rad/s, |q_p_dot| and |q_d_dot| mm/s."""
+JOINT_RATE_LIMITS = np.array([1e4, 1e5, 1e5])
+"""|q_r_dot| rad/s, |q_p_dot| and |q_d_dot| mm/s: far beyond any motor, but a simulated or
+commanded step differentiated over a millisecond stays within (a quarter turn: 1.6e3 rad/s)."""
 MAX_IMAGE_COORDINATE = 1e5
 """|u|, |v| of an image point, px or mm (a 65,536 px image is 6.6e4 px wide)."""
 MAX_POINT_SIGMA = 1e3

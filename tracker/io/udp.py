@@ -286,8 +286,8 @@ class JointReceiver:
             else:
                 self.counts.count_malformed(counted_as, -1)
             self._keep(kept, kept_arrival_s)
-        if not self.counts.malformed.get("time", 1):
-            del self.counts.malformed["time"]
+        if self.counts.malformed.get("time") == 0:
+            del self.counts.malformed["time"]  # every one of them was kept after all
         return len(jumped)
 
     def _keep(self, packet: JointPacket, arrival_s: float) -> None:

@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import math
 import sys
+import threading
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -48,13 +49,11 @@ from tracker.viewer.layout import (
     MARKERS_3D,
     PLANE_ALPHA,
     PLANE_FAN,
-    PLANE_FAN_EDGE,
     PREDICT_ONLY_COLOR,
     REFERENCE_COLOR,
     SEGMENTED_COLOR,
     SIDES,
     TIMELINE,
-    TIP_UNCERTAINTY,
     TRUTH_COLOR,
     WORLD,
     band_path,
@@ -80,7 +79,7 @@ from tracker.viewer.output import ViewerWatch
 Array = np.ndarray
 NIS_BAND = (0.025, 0.975)  # the chi-square 95% band
 # Sizes of the marker glyphs: negative radii are UI points (the same on screen at any zoom).
-RING_RADIUS = {True: 9.0, False: 0.8}  # segmented: rings of 9 px (cameras) or 0.8 mm (planes)
+RING_RADIUS = {True: 9.0, False: 1.2}  # segmented: rings of 9 px (cameras) or 1.2 mm (planes)
 RING_LINE = -1.0
 DOT_RADIUS = -3.0  # reprojected: filled dots
 DIAL_ORDER = 50.0  # draw order of the dial's needles (rerun draws higher values on top)
@@ -162,6 +161,7 @@ class RerunSink:
         self._truth_time_s: float | None = None
         self._truth_unwrapped_rad = math.nan
         self._truth_logged = False
+        self._truth_lock = threading.Lock()
         self._frame_index = 0
         self._live_styled = False
         self._joints_styled = False
@@ -278,10 +278,11 @@ class RerunSink:
 
     def _clear_estimate(self, names: Sequence[str], pinhole: bool) -> None:
         """No valid estimate: nothing drawn from it (rather than the last one, stale)."""
-        for path in (CATHETER_ESTIMATE, TIP_UNCERTAINTY, PLANE_FAN, PLANE_FAN_EDGE, BENDING_PLANE):
+        for path in (CATHETER_ESTIMATE, PLANE_FAN, BENDING_PLANE):
             self.stream.log(path, rr.Clear(recursive=False))
         for name in names:
-            self.stream.log(f"{view_path(name, pinhole)}/reprojected", rr.Clear(recursive=False))
+            for drawn in ("reprojected", "backbone"):
+                self.stream.log(f"{view_path(name, pinhole)}/{drawn}", rr.Clear(recursive=False))
 
     def log_frame(
         self,
@@ -359,58 +360,56 @@ class RerunSink:
             return
         color = method_color(primary)
         backbone_b = catheter.backbone(q, estimate.delta_L_rad, self._s)
-        self.stream.log(
-            CATHETER_ESTIMATE,
-            rr.LineStrips3D(
-                [pose.world_from_base(backbone_b)], colors=[color], radii=[0.3], labels=[primary]
-            ),
-        )
-        vertices_w, triangles = bending_plane_w(backbone_b, pose)
-        self.stream.log(
-            BENDING_PLANE,
-            rr.Mesh3D(
-                vertex_positions=vertices_w,
-                triangle_indices=triangles,
-                albedo_factor=(*color, PLANE_ALPHA),
-            ),
-        )
         # Where the tip would be for delta_L within +/-2 sigma: an arc about the base axis.
         spread = min(2.0 * estimate.std_rad, np.pi)
         arc = estimate.delta_L_rad + np.linspace(-spread, spread, 25)
         tip_b = catheter.tip(np.broadcast_to(q, (arc.size, 3)), arc)
-        self.stream.log(
-            TIP_UNCERTAINTY,
-            rr.LineStrips3D([pose.world_from_base(tip_b)], colors=[color], radii=[0.15]),
-        )
-        vertices_w, triangles = plane_fan_w(
+        fan_w, fan_triangles = plane_fan_w(
             catheter, q, estimate.delta_L_rad, estimate.std_rad, pose.R_w_b, pose.o_b_w_mm
         )
+        # One entity, three lines: the catheter, the tip's arc, and the fan's outline (so that
+        # a narrow fan, a certain estimate, still shows).
         self.stream.log(
-            PLANE_FAN,
-            rr.Mesh3D(
-                vertex_positions=vertices_w,
-                triangle_indices=triangles,
-                albedo_factor=(*color, FAN_ALPHA),
-            ),
-        )
-        # Its outline, so that a narrow fan (a certain estimate) still shows.
-        self.stream.log(
-            PLANE_FAN_EDGE,
+            CATHETER_ESTIMATE,
             rr.LineStrips3D(
-                [np.vstack([vertices_w, vertices_w[:1]])], colors=[color], radii=[0.08]
+                [
+                    pose.world_from_base(backbone_b),
+                    pose.world_from_base(tip_b),
+                    np.vstack([fan_w, fan_w[:1]]),
+                ],
+                colors=[color],
+                radii=[0.3, 0.15, 0.08],
+                labels=[primary, "", ""],
             ),
         )
+        plane_w, plane_triangles = bending_plane_w(backbone_b, pose)
+        for path, vertices_w, triangles, alpha in (
+            (BENDING_PLANE, plane_w, plane_triangles, PLANE_ALPHA),
+            (PLANE_FAN, fan_w, fan_triangles, FAN_ALPHA),
+        ):
+            self.stream.log(
+                path,
+                rr.Mesh3D(
+                    vertex_positions=vertices_w,
+                    triangle_indices=triangles,
+                    albedo_factor=(*color, alpha),
+                ),
+            )
         arclengths = np.array((catheter.length_mm, *catheter.marker_arclengths_mm))
         points_w = pose.world_from_base(catheter.backbone(q, estimate.delta_L_rad, arclengths))
         for name, view in views:
+            path = view_path(name, pinhole)
             try:
                 uv = view.project(points_w)
             except ValueError:  # a point behind a camera: nothing to draw
                 continue
-            self.stream.log(
-                f"{view_path(name, pinhole)}/reprojected",
-                rr.Points2D(uv, colors=[color], radii=[DOT_RADIUS]),
-            )
+            dots = rr.Points2D(uv, colors=[color], radii=[DOT_RADIUS])
+            self.stream.log(f"{path}/reprojected", dots)
+            if not pinhole:  # a plane has no image of the catheter: draw the estimated one
+                backbone_uv = view.project(pose.world_from_base(backbone_b))
+                self.stream.log(
+                    f"{path}/backbone", rr.LineStrips2D([backbone_uv], colors=[color], radii=[-1.0])
+                )
 
     def _log_dials(self, estimates: Mapping[str, Estimate]) -> None:
         """A needle at delta_1 = q_r + delta_L with its +/-2 sigma arc per method (nested
@@ -474,15 +473,18 @@ class RerunSink:
         }
 
     def _truth_at(self, time_s: float, truth_rad: float | None) -> float:
-        """The unwrapped truth at a frame time (rad, NaN unknown), logged once per frame."""
-        if self._truth_time_s == time_s:
+        """The unwrapped truth at a frame time (rad, NaN unknown), logged once per frame.
+
+        Locked: the live loop's sinks log estimates from threads of their own."""
+        with self._truth_lock:
+            if self._truth_time_s == time_s:
+                return self._truth_unwrapped_rad
+            self._truth_time_s = time_s
+            truth = math.nan if truth_rad is None else float(truth_rad)
+            self._truth_unwrapped_rad = self._truth_unwrap(truth)
+            if math.isfinite(truth):
+                self.stream.log(DELTA_L_TRUTH, rr.Scalars(np.degrees(self._truth_unwrapped_rad)))
             return self._truth_unwrapped_rad
-        self._truth_time_s = time_s
-        truth = math.nan if truth_rad is None else float(truth_rad)
-        self._truth_unwrapped_rad = self._truth_unwrap(truth)
-        if math.isfinite(truth):
-            self.stream.log(DELTA_L_TRUTH, rr.Scalars(np.degrees(self._truth_unwrapped_rad)))
-        return self._truth_unwrapped_rad
 
     def log_estimate(self, name: str, estimate: Estimate, truth_rad: float | None = None) -> None:
         """One method's estimate as time series: delta_L unwrapped with its +/-2 sigma band

@@ -10,7 +10,9 @@ tone curve of the background's (a polynomial of degree up to 2: a gain, an offse
 curvature, enough for a gamma of 0.9 to 1.1) plus a shift of the whole image to first order
 (the background's gradient times the shift). The fit is robust: a least-squares fit, then a
 second one without the pixels beyond four robust standard deviations (the catheter, an
-occluder); saturated pixels take no part. Its residual is the frame's noise estimate.
+occluder); saturated pixels take no part. Its residual is the frame's noise estimate, and
+``f(0)`` its black level (contrasts are fractions of the light above it, so an offset does
+not change them).
 
 Limits: one tone curve for the whole image (a gain that varies across the image and changes
 from frame to frame is not followed, only a slow one through the background model's update,
@@ -50,7 +52,7 @@ class Photometry:
         Robust standard deviation of the residual (sensor noise, quantisation, anything the
         fit does not explain), gray levels.
     gain : float
-        Slope of ``f`` at the background's median gray level (1: unchanged exposure).
+        Slope of ``f`` at the background's mean gray level (1: unchanged exposure).
     clipped_fraction : float
         Fraction of the grid's pixels saturated (0 or 255) in the frame.
     fitted : bool

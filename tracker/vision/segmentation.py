@@ -282,10 +282,12 @@ class Segmenter:
 
         Notes
         -----
-        The whole image is searched at half resolution (both images smoothed by
-        :func:`cv2.pyrDown`: white noise drops to 0.27 of itself, the tube keeps its
+        The whole image is searched at half resolution (both images averaged over 2 x 2
+        pixels and smoothed: white noise drops to 0.19 of itself, the tube keeps most of its
         contrast); the foreground at full resolution is then found in the region of the
-        blobs found there, or in the whole image if the catheter runs out of that region.
+        blobs found there, with a margin. A region around ``search_px`` is searched at full
+        resolution directly, and the whole image as above when the catheter is not found in
+        it or runs out of it.
         """
         s = self.settings
         background = check_image(background, "background image")

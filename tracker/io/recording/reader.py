@@ -148,6 +148,7 @@ class Recording:
         self.max_joint_gap_s = float(max_joint_gap_s)
         self.report = ReadReport(str(self.path))
         self._problems = decode.Problems()
+        self._problem_warnings: list[str] = []  # the problems' lines now in the report
         self._metadata_raw: dict[str, dict[str, str]] = {}
         self._channels: dict[int, str] = {}
         self._last_time: dict[str, int] = {}
@@ -329,7 +330,7 @@ class Recording:
         elif before_ns is not None:
             span = f"data after t = {self._seconds(before_ns):.3f} s"
         elif after_ns is not None:
-            span = f"data before t = {self._seconds(after_ns):.3f} s"
+            span = f"what came before the first message read (t = {self._seconds(after_ns):.3f} s)"
         else:
             span = "the data there"
         if d.kind == "truncated":
@@ -482,11 +483,19 @@ class Recording:
         for topic in (TOPIC_TRUTH, *(markers_topic(view) for view in self.views)):
             self._per_frame.pop(topic, None)
         self._estimates_raw = {}
-        self.report.warnings += self._problems.warnings()
+        self._report_problems()
         self.report.frames = len(self._stamps)
         self.report.joint_samples = int(self.joints.time_s.size)
         if self._max_time is not None:
             self.report.last_time_s = (self._max_time - start_ns) / 1e9
+
+    def _report_problems(self) -> None:
+        """Put the problems' warnings (one per kind, with counts) in the report, replacing
+        the earlier ones: images that cannot be decoded are found when frames are read."""
+        old = set(self._problem_warnings)
+        self._problem_warnings = self._problems.warnings()
+        self.report.warnings[:] = [w for w in self.report.warnings if w not in old]
+        self.report.warnings += self._problem_warnings
 
     def _view_names(self) -> tuple[str, ...]:
         """The recorded rig's view names (the bi-plane names for a rig that names none)."""
@@ -526,6 +535,7 @@ class Recording:
             return decode_image(self._image_data(ref))
         except (ValueError, OSError, McapError):
             self._problems.add("bad_image", topic)
+            self._report_problems()
             return None
 
     def _background(self, view: str) -> Array | None:
@@ -576,10 +586,15 @@ class Recording:
 
     def catheter(self) -> Catheter:
         """The catheter model of the ``model`` metadata record."""
+        source = f"{self.path} model"
         try:
-            return catheter_from_dict(tomllib.loads(self.metadata.model_toml), "recorded model")
-        except (tomllib.TOMLDecodeError, RecursionError, ModelFileError) as exc:
-            raise RecordingError(f"{self.path}: {exc}") from None
+            data = tomllib.loads(self.metadata.model_toml)
+        except (tomllib.TOMLDecodeError, RecursionError) as exc:
+            raise RecordingError(f"{source}: malformed TOML: {exc}") from None
+        try:
+            return catheter_from_dict(data, source)
+        except ModelFileError as exc:
+            raise RecordingError(str(exc)) from None
 
     def rig(self) -> tuple[Rig, Pose]:
         """The rig and the registered base pose of the ``rig`` metadata record."""
