@@ -145,6 +145,31 @@ def per_frame_table(catheter, sequence) -> dict[str, float]:
     return baselines
 
 
+# ------------------------------------------------------------------ robust filters (issue 11)
+N_ROBUST = 3_000
+TARGET_ROBUST_UKF_US = 150.0
+TARGET_GRID_US = 300.0
+
+
+def robust_filters(catheter, baseline_us: float) -> None:
+    """The default filters as the live loop runs them: ``ukf`` (deviation state, per-group
+    gate, hypotheses; finite-difference velocity) and ``grid`` (2,048 cells), each step's
+    median over ``N_ROBUST`` frames of the pipeline sequence, and the Tip Position
+    least-squares baseline (median of this run) divided by it.
+    """
+    sequence = frames(N_ROBUST, np.random.default_rng(2), catheter, independent_velocity=False)
+    print(f"Robust filters, default settings, {N_ROBUST:,} frames each (us per step)")
+    for name, target in (("ukf", TARGET_ROBUST_UKF_US), ("grid", TARGET_GRID_US)):
+        us = time_steps(make_estimator(name, catheter).step, sequence)
+        median = float(np.median(us))
+        print(
+            f"  {name:5s} median {median:7.1f}   p99 {np.percentile(us, 99):7.1f}"
+            f"   target <= {target:.0f} us {verdict(median <= target)}"
+            f"   baseline / {name}: {baseline_us / median:.1f}"
+        )
+
+
+# ------------------------------------------------------------------ main
 def main() -> None:
     print(f"Python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
     print()
@@ -153,6 +178,8 @@ def main() -> None:
     sequence = frames(N_FRAMES, rng, catheter, independent_velocity=True)
 
     baseline_us = per_frame_table(catheter, sequence)["tip-position"]
+    print()
+    robust_filters(catheter, baseline_us)
     print()
 
     fused = BendingPlaneUKF(catheter, UKFSettings(velocity_is_finite_difference=False))

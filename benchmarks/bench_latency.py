@@ -1,57 +1,120 @@
-"""Image-to-estimate latency of the live loop (prints only; no asserts).
+"""Latency of the live loop, quiet and under load (prints only; no asserts).
 
-Run from the repository root: ``python benchmarks/bench_latency.py [--frames N]``.
+Run from the repository root: ``python benchmarks/bench_latency.py [--load N]``.
 
-Two 640x480 rendered frames per step (replay.simulation.render, the default render rig), fed to
-:class:`tracker.live.loop.LiveTracker` as they would come from two cameras: joint datagrams at
-1 kHz over loopback UDP (33 per frame, drained by the loop), the UKF, and the estimate
-datagram sent back over UDP. Latency is from the moment the image pair is handed to the loop
-to the estimate being ready (the number sent in the estimate datagram), and to every sink
-being done. Two runs:
+Three measurements on the default rendering rig (two 640x480 cameras), each on the quiet
+machine and, with ``--load N``, again with N busy processes (N = the number of cores puts a
+CPU hog on every core):
 
-- ``segmentation``: the images are segmented in the loop (tracker.vision.segmentation);
-- ``markers``: the same points segmented beforehand and handed over as
-  :class:`tracker.io.udp.SegmentedMarkers` (what an external segmenter sends).
+1. ``segmentation``: one pair segmented by :class:`tracker.vision.pair.PairSegmenter`, the
+   whole image searched every time, or only the region of interest around the catheter
+   predicted from the last estimate at the frame's joints (what the loop does); the set-ups
+   take turns frame by frame, so that a change of the machine's load hits both alike;
+2. ``loop``: :class:`tracker.live.loop.LiveTracker` fed by hand as fast as it goes, joint
+   datagrams at 1 kHz over loopback UDP (drained by the loop) and the estimate datagram sent
+   back: latency from the moment the pair is handed over to the estimate being ready, with
+   the images segmented in the loop or the same points handed over as segmented markers;
+3. ``live``: the live session in real time, ``cathtrack demo``'s wiring (the session of
+   ``cathtrack track`` with simulated cameras rendered ahead in a process and a simulated
+   controller in another, rerun writing an ``.rrd``, the comparison estimator): latency from
+   the exposure to the estimate sent, frames dropped (a newer pair came while the loop was
+   busy), estimates per second, the UKF's RMS error.
 
-Target: p99 <= 5 ms image -> estimate. The first 10 frames (UKF start) are left out.
+Targets (issue 12): quiet, image -> estimate p99 <= 5 ms (``loop``, segmentation) and no pair
+rendered late; under load, ``live`` p99 <= two frame periods with the drops counted and the UKF
+RMS within 1.5x the quiet run's. Designed for margin: a machine twice as slow should hold them.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import socket
+import subprocess
 import sys
+import tempfile
 import time
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
+from models.pose import Pose  # noqa: E402
 from models.rotations import wrap_angle  # noqa: E402
-from replay.simulation.render import Renderer, default_render_rig
-from replay.simulation.simulator import default_scene
-from replay.simulation.sources import session_joints, simulated_session
-from tracker.estimators import make_estimator
-from tracker.io.datagrams import SegmentedMarkers, encode_joints
-from tracker.io.udp import EstimateSender, JointReceiver
-from tracker.live.loop import LiveTracker
-from tracker.live.sources import ImageSet
-from tracker.reconstruction import Reconstructor
+from replay.demo import DemoResult, DemoSettings, run_demo  # noqa: E402
+from replay.simulation.render import Renderer, default_render_rig  # noqa: E402
+from replay.simulation.simulator import default_scene  # noqa: E402
+from replay.simulation.sources import session_joints, simulated_session  # noqa: E402
+from tracker.estimators import make_estimator  # noqa: E402
+from tracker.io.datagrams import SegmentedMarkers, encode_joints  # noqa: E402
+from tracker.io.udp import EstimateSender, JointReceiver  # noqa: E402
+from tracker.live.loop import LiveTracker  # noqa: E402
+from tracker.live.sources import ImageSet  # noqa: E402
+from tracker.reconstruction import Reconstructor  # noqa: E402
+from tracker.viewer.output import add_rerun_args  # noqa: E402
+from tracker.vision.pair import PairSegmenter  # noqa: E402
 
 TARGET_P99_MS = 5.0
-FRAME_RATE_HZ = 30.0
+FRAME_RATE_HZ = 20.0
 JOINT_RATE_HZ = 1000
 WARM_UP = 10
+ROI_POINTS = 12
 
 
-def percentiles_ms(values_s) -> tuple[float, float, float]:
+def percentiles_ms(values_s) -> tuple[float, float]:
     v = 1e3 * np.asarray(values_s)
-    return float(np.median(v)), float(np.percentile(v, 99)), float(v.max())
+    return float(np.median(v)), float(np.percentile(v, 99))
 
 
-def run(label, items, scene, truth, segmenter=None) -> None:
-    """Feed items through a fresh loop; print the latency percentiles."""
+@contextmanager
+def busy_processes(n: int):
+    """``n`` processes that spin for as long as the block runs (a CPU hog each)."""
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)
+    ]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+# ------------------------------------------------------------------------- segmentation
+def bench_segmentation(session, renderer, pairs) -> dict[str, tuple[float, float]]:
+    """p50, p99 (ms) of a pair segmented whole, and in the region of the prediction."""
+    scene = session.scene
+    catheter = scene.catheter
+    pose = Pose(scene.R_w_b, scene.o_b_w_mm)
+    arclengths = np.linspace(0.0, catheter.length_mm, ROI_POINTS)
+    segmenters = {
+        name: PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds)
+        for name in ("whole image", "region of interest")
+    }
+    times = {name: [] for name in segmenters}
+    for k, (frame, pair) in enumerate(zip(session.frames, pairs, strict=True)):
+        names = list(segmenters)[k % 2 :] + list(segmenters)[: k % 2]
+        for name in names:
+            segmenter = segmenters[name]
+            started = time.perf_counter()
+            if name == "whole image":
+                segmenter.reset()
+                segmenter.segment(pair.images)
+            else:
+                # The last estimate (the truth one frame ago) at this frame's joints.
+                delta_L = session.delta_L_true_rad[max(k - 1, 0)]
+                points_w = pose.world_from_base(catheter.backbone(frame.q, delta_L, arclengths))
+                segmenter.segment(pair.images, tuple(v.project(points_w) for v in scene.rig.views))
+            times[name].append(time.perf_counter() - started)
+    return {name: percentiles_ms(t[WARM_UP:]) for name, t in times.items()}
+
+
+# --------------------------------------------------------------------------------- loop
+def bench_loop(items, scene, truth, segmenter=None) -> dict[str, float]:
+    """Feed items through a fresh loop by hand: latency p50, p99 (ms), RMS error (deg)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as controller:
         controller.bind(("127.0.0.1", 0))
         controller.setblocking(False)
@@ -62,18 +125,17 @@ def run(label, items, scene, truth, segmenter=None) -> None:
             [EstimateSender(controller.getsockname())],
             joints=joints,
             segmenter=segmenter,
+            max_time_jump_s=1e9,  # fed faster than real time
         )
         sample = 0
-        latency, cycle, errors = [], [], []
+        latency, errors = [], []
         for k, item in enumerate(items):
             t = item[0] if isinstance(item, tuple) else item.time_s
             while sample / JOINT_RATE_HZ <= t + 0.001:  # the controller streams on meanwhile
                 ts = sample / JOINT_RATE_HZ
                 controller.sendto(encode_joints(sample, ts, *session_joints(ts)), joints.address)
                 sample += 1
-            handed = time.perf_counter()
             result = tracker.step(item, tracker.monotonic())
-            done = time.perf_counter()
             try:
                 while True:
                     controller.recv(256)
@@ -81,23 +143,107 @@ def run(label, items, scene, truth, segmenter=None) -> None:
                 pass
             if k >= WARM_UP and result is not None:
                 latency.append(result.latency_s)
-                cycle.append(done - handed)
                 errors.append(wrap_angle(result.estimate.delta_L_rad - truth[k]))
         tracker.close()
-    p50, p99, worst = percentiles_ms(latency)
-    c50, c99, _ = percentiles_ms(cycle)
+    p50, p99 = percentiles_ms(latency)
     rms = float(np.degrees(np.sqrt(np.nanmean(np.square(errors)))))
-    passed = verdict(p99 <= TARGET_P99_MS)
-    print(
-        f"{label:>13}: image -> estimate p50 {p50:6.2f} ms, p99 {p99:6.2f} ms (max {worst:6.2f})"
-        f" [{passed} p99 <= {TARGET_P99_MS:g} ms]; -> sinks done p50 {c50:5.2f} ms,"
-        f" p99 {c99:5.2f} ms; delta_L RMS error {rms:.2f} deg over {len(latency)} frames"
+    return {"p50": p50, "p99": p99, "rms": rms, "n": len(latency)}
+
+
+# --------------------------------------------------------------------------------- live
+def bench_live(seconds: float, folder: Path) -> DemoResult:
+    """The demo's live session for ``seconds`` (silent), its result."""
+    parser = argparse.ArgumentParser()
+    add_rerun_args(parser, save_default=str(folder / "live.rrd"))
+    results: list[DemoResult] = []
+    run_demo(
+        DemoSettings(seconds=seconds, frame_rate_hz=FRAME_RATE_HZ),
+        parser.parse_args([]),
+        out=lambda line: None,
+        report=lambda line: print(f"    ({line})"),
+        on_result=results.append,
     )
+    return results[0]
+
+
+def live_row(result: DemoResult) -> dict[str, float]:
+    s = result.summary
+    rms = result.scores["ukf"].row()["rms_deg"]
+    return {
+        "p50": s.latency_ms["p50"],
+        "p99": s.latency_ms["p99"],
+        "dropped": s.frames_dropped,
+        "processed": s.frames_processed,
+        "per_s": s.frames_processed / max(s.duration_s, 1e-9),
+        "rms": rms,
+        "late": result.late_frames,
+        "render_ms": result.render_ms,
+        "received": result.estimates_received,
+        "sent": result.estimates_sent,
+        "viewer_dropped": sum(s.sink_dropped.values()),
+    }
+
+
+# --------------------------------------------------------------------------------- main
+def measure(args, session, renderer, pairs, markers, folder: Path) -> dict:
+    out = {"segmentation": bench_segmentation(session, renderer, pairs)}
+    scene = session.scene
+    truth = session.delta_L_true_rad
+    segmenter = PairSegmenter(
+        scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+    )
+    out["loop, segmentation"] = bench_loop(pairs_items(pairs, session), scene, truth, segmenter)
+    out["loop, markers"] = bench_loop(markers, scene, truth)
+    out["live"] = live_row(bench_live(args.seconds, folder))
+    return out
+
+
+def pairs_items(pairs, session) -> list[ImageSet]:
+    return [ImageSet(f.time_s, tuple(p.images)) for f, p in zip(session.frames, pairs, strict=True)]
+
+
+def report(label: str, m: dict, quiet: dict | None) -> None:
+    print(f"  {label}:")
+    for name, (p50, p99) in m["segmentation"].items():
+        print(f"    segmentation, {name:>18}: p50 {p50:6.2f} ms, p99 {p99:6.2f} ms")
+    gain = m["segmentation"]["whole image"][0] / m["segmentation"]["region of interest"][0]
+    print(f"    region of interest: {gain:.2f}x faster at the median")
+    for name in ("loop, segmentation", "loop, markers"):
+        r = m[name]
+        ok = verdict(r["p99"] <= TARGET_P99_MS)
+        print(
+            f"    {name:>18}: image -> estimate p50 {r['p50']:6.2f} ms, p99 {r['p99']:6.2f} ms"
+            f" [{ok} p99 <= {TARGET_P99_MS:g} ms]; RMS {r['rms']:.2f} deg over {r['n']} frames"
+        )
+    r = m["live"]
+    period_ms = 1e3 / FRAME_RATE_HZ
+    target = TARGET_P99_MS if quiet is None else 2 * period_ms
+    ok = verdict(r["p99"] <= target and (quiet is not None or r["late"] == 0))
+    line = (
+        f"    {'live session':>18}: exposure -> estimate p50 {r['p50']:6.2f} ms, p99"
+        f" {r['p99']:6.2f} ms [{ok} p99 <= {target:g} ms"
+        + (", no pair late" if quiet is None else "")
+        + f"]; {r['processed']} processed, {r['dropped']} dropped, {r['per_s']:.1f} estimates/s,"
+        f" {r['received']} of {r['sent']} received; pairs rendered late {r['late']}"
+        f" ({r['render_ms']:.0f} ms a pair); viewer dropped {r['viewer_dropped']};"
+        f" UKF RMS {r['rms']:.2f} deg"
+    )
+    if quiet is not None:
+        ratio = r["rms"] / quiet["live"]["rms"]
+        line += f" ({ratio:.2f}x quiet) [{verdict(ratio <= 1.5)} <= 1.5x]"
+    print(line)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=300, help="frames per run (300)")
+    parser.add_argument("--frames", type=int, default=300, help="pairs segmented and fed (300)")
+    parser.add_argument(
+        "--seconds", type=float, default=15.0, help="length of the live session, s (15)"
+    )
+    parser.add_argument(
+        "--load", type=int, default=0, metavar="N",
+        help="run again with N busy processes (N = the cores: a hog on every core)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
@@ -108,42 +254,27 @@ def main(argv=None) -> int:
     )
     renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=args.seed)
     rng = np.random.default_rng(args.seed)
-    print(f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+    print(
+        f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()},"
+        f" {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
+    )
     started = time.perf_counter()
-    pairs = [
-        ImageSet(f.time_s, tuple(renderer.render(f.q, f.delta_L_true_rad, rng).images))
-        for f in session.frames
-    ]
-    h, w = pairs[0].images[0].shape
-    print(f"rendered {len(pairs)} pairs of {w}x{h} images in {time.perf_counter() - started:.1f} s")
-    try:
-        from tracker.vision.pair import PairSegmenter
-    except ImportError:
-        PairSegmenter = None
-    truth = session.delta_L_true_rad
-    if PairSegmenter is not None:
-        segmenter = PairSegmenter(
-            catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
-        )
-        run("segmentation", pairs, scene, truth, segmenter)
-        markers = []
-        for i, pair in enumerate(pairs):
-            seg = segmenter.segment(pair.images)
-            markers.append(SegmentedMarkers(pair.time_s, tuple(seg.uv), tuple(seg.cov), i))
-        source = "segmented beforehand"
-    else:
-        print("tracker.vision.segmentation is not available: markers only (true points + 0.5 px)")
-        cov = np.tile(0.25 * np.eye(2), (3, 1, 1))
-        markers = [
-            SegmentedMarkers(
-                f.time_s, tuple(renderer.render(f.q, f.delta_L_true_rad, rng).points_px),
-                (cov, cov), i
-            )
-            for i, f in enumerate(session.frames)
-        ]
-        source = "true projections"
-    print(f"markers: {source}")
-    run("markers", markers, scene, truth)
+    pairs = [renderer.render(f.q, f.delta_L_true_rad, rng) for f in session.frames]
+    print(f"rendered {len(pairs)} pairs in {time.perf_counter() - started:.1f} s")
+    segmenter = PairSegmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+    )
+    markers = []
+    for i, (frame, pair) in enumerate(zip(session.frames, pairs, strict=True)):
+        seg = segmenter.segment(pair.images)
+        markers.append(SegmentedMarkers(frame.time_s, tuple(seg.uv), tuple(seg.cov), i))
+    with tempfile.TemporaryDirectory() as folder:
+        quiet = measure(args, session, renderer, pairs, markers, Path(folder))
+        report("quiet", quiet, None)
+        if args.load:
+            with busy_processes(args.load):
+                loaded = measure(args, session, renderer, pairs, markers, Path(folder))
+            report(f"{args.load} busy processes", loaded, quiet)
     return 0
 
 

@@ -113,6 +113,7 @@ def _session_settings(args: argparse.Namespace, kind: str) -> SessionSettings:
         record_path=args.record,
         csv_path=args.csv,
         live_clock=kind != "recording",
+        queued=not (kind == "recording" and not args.speed),  # as fast as possible: inline
         images=not args.no_images,
         image_every=args.image_every,
     )

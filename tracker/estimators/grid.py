@@ -34,22 +34,25 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.fft
 
 from models.catheter import Catheter
-from tracker.estimators.measurement import (
-    FrameGroups,
+from tracker.estimators.deviation import (
     ShapeExpansion,
     deviation_decay,
     deviation_jacobian,
     deviation_prior,
     expansion_basis,
+    quadratic_moments,
+)
+from tracker.estimators.measurement import (
+    FrameGroups,
     jump_probability,
     mixture_log_likelihood,
     model_error_covariance,
     offered_velocity,
     outlier_threshold,
     process_variance,
-    quadratic_moments,
     velocity_offered,
     wrap,
 )
@@ -59,7 +62,7 @@ from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Estimate, Flag, Observation
 
 Array = np.ndarray
-DEFAULT_CELLS = 4096
+DEFAULT_CELLS = 2048
 _LOG_2PI = math.log(2.0 * math.pi)
 _TWO_PI = 2.0 * math.pi
 
@@ -73,8 +76,9 @@ class GridFilter:
     settings : UKFSettings, optional
         Its process and measurement models (see the module notes for what is not used).
     cells : int
-        Number of grid cells, >= 64 (1,024 to 4,096 resolve the posterior of the usual noise
-        levels).
+        Number of grid cells, >= 64. The default 2,048 (0.18 degree cells) resolves a
+        posterior down to a std of about a cell; the grid's std includes a cell's own
+        ``h^2 / 12``, so a narrower posterior is reported as wide as a cell.
     name : str
     """
 
@@ -220,11 +224,16 @@ class GridFilter:
         if variance > 0.01 * self.cell_rad**2:
             # The wrapped normal's Fourier coefficients at the integer frequencies of the grid.
             kernel = np.exp(-0.5 * variance * self._k2)
-            p = np.maximum(np.fft.irfft(np.fft.rfft(self.p) * kernel, self.cells), 0.0)
             if self._deviation and variance > (2 * self.cell_rad) ** 2:
-                weighted = np.fft.irfft(np.fft.rfft(self.p[:, None] * self.mu, axis=0)
-                                        * kernel[:, None], self.cells, axis=0)  # fmt: skip
-                self.mu = weighted / np.maximum(p, 1e-300)[:, None]
+                # The deviation means follow by moment matching: convolve p and p mu at once.
+                stack = np.empty((3, self.cells))
+                stack[0] = self.p
+                stack[1:] = (self.p[:, None] * self.mu).T
+                blurred = scipy.fft.irfft(scipy.fft.rfft(stack) * kernel, self.cells)
+                p = np.maximum(blurred[0], 0.0)
+                self.mu = (blurred[1:] / np.maximum(p, 1e-300)).T
+            else:
+                p = np.maximum(scipy.fft.irfft(scipy.fft.rfft(self.p) * kernel, self.cells), 0.0)
             p /= p.sum()
         else:
             self._pending_variance = variance
@@ -247,9 +256,9 @@ class GridFilter:
         y, c, JK = groups.y[0][present], groups.c[0][present], groups.JK[0][present]
         S = groups.R_bar[0][present] + M
         if self._deviation:
-            # The deviation enters with its Jacobian at the posterior mean's deviation, and
+            # The deviation enters with its Jacobian at the most probable cell's deviation, and
             # its quadratic term with the mean and spread of the shared covariance.
-            J = deviation_jacobian(JK[..., :2], JK[..., 2:], self.mu[self._cell(self.moments()[0])])
+            J = deviation_jacobian(JK[..., :2], JK[..., 2:], self.mu[int(np.argmax(self.p))])
             bias, spread = quadratic_moments(JK[..., 2:], self.Sigma)
             S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
             c = c + bias

@@ -14,17 +14,16 @@ as a joint deviation would (the paper made its deflections that way), so
     e = J dq + K [dq_p^2, dq_p dq_d, dq_d^2] + noise,   noise ~ N(0, R_bar + M),
 
 - ``J = dc/d(q_p, q_d)`` of each point (mm/mm: the error grows with the arclength) and the
-  second-order term K (:class:`ShapeExpansion`: a deviation of 0.2 mm already turns the
-  tip by 20 degrees);
-- ``dq``: the joint-equivalent deviation (mm), a *state* of both filters, estimated online:
-  its prior is ``N(0, sigma_q^2 + (gain_error q_j)^2)`` per joint (:func:`deviation_prior`,
-  the second term: a bending gain that is off grows with the bending) and it decorrelates as
-  the joints move (:func:`deviation_decay`). Persistent, unlike noise: a deflected, nearly
+  second-order term K (a deviation of 0.2 mm already turns the tip by 20 degrees);
+- ``dq``: the joint-equivalent deviation (mm), a *state* of both filters, estimated online
+  (:mod:`tracker.estimators.deviation`): its prior is ``N(0, sigma_q^2 + (gain_error
+  q_j)^2)`` per joint (the second term: a bending gain that is off grows with the bending)
+  and it decorrelates as the joints move. Persistent, unlike noise: a deflected, nearly
   straight configuration cannot pile up evidence for the opposite plane frame after frame;
 - ``R_bar``: the segmentation noise, reduced to its part that is invariant under rotations
   about z_b (the mean of the horizontal variances, the vertical variance). A bi-plane
   reconstruction whose views share the z_b axis has exactly this form; otherwise it is the
-  rotation average of the noise. The UKF uses the full noise;
+  rotation average of the noise (both filters use it, so that their likelihoods are one);
 - ``M``: a small white model error ``J diag(sigma_w^2) J^T`` (what a joint deviation does not
   describe exactly).
 
@@ -63,12 +62,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from models.catheter import Catheter
+from tracker.estimators.deviation import expansion_basis
 
 Array = np.ndarray
 
-# Step of the central differences of the shape in the joints, mm.
-DEVIATION_STEP_MM = 1e-3
 # Angles at which a frame's cost is evaluated before Newton's method polishes the minimum.
 _FIT_ANGLES = np.linspace(-np.pi, np.pi, 64, endpoint=False)
 _FIT_TABLE = np.stack(
@@ -109,8 +106,8 @@ class FrameGroups:
         (:func:`rotation_invariant`, the noise both filters use).
     JK : array, shape (B, G, 3, 5)
         ``[J K]``, the shape's expansion in the deviation, ``c + JK expansion_basis(dq)``
-        (:class:`ShapeExpansion`; the velocity's is minus the decorrelation gain times the
-        tip's).
+        (:class:`~tracker.estimators.deviation.ShapeExpansion`; the velocity's is minus the
+        decorrelation gain times the tip's).
     present : array of bool, shape (B, G)
     K_bar : array, shape (B, 3, 3)
         Rotation-invariant part of the decorrelation gain of the velocity, 1/s.
@@ -333,123 +330,6 @@ def rotation_invariant(A: Array) -> Array:
     return out
 
 
-def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array, Array]:
-    """c, J and K at q by central differences (six shape evaluations)."""
-    h = DEVIATION_STEP_MM
-
-    def points(dp: float, dd: float) -> Array:
-        shape = catheter.shape_vectors(q + np.array([0.0, dp, dd]))
-        return np.concatenate([shape.c_tip_mm[None], shape.c_markers_mm])
-
-    c = points(0.0, 0.0)
-    plus_p, minus_p = points(h, 0.0), points(-h, 0.0)
-    plus_d, minus_d = points(0.0, h), points(0.0, -h)
-    both = points(h, h)
-    J = np.stack([(plus_p - minus_p) / (2 * h), (plus_d - minus_d) / (2 * h)], -1)
-    K = np.stack(
-        [
-            0.5 * (plus_p - 2 * c + minus_p) / h**2,
-            (both - plus_p - plus_d + c) / h**2,
-            0.5 * (plus_d - 2 * c + minus_d) / h**2,
-        ],
-        -1,
-    )
-    return c, J, K
-
-
-class ShapeExpansion:
-    """Model vectors of the tip and the markers and their second-order expansion in a joint
-    deviation: ``c(q + dq) = c + J dq + K [dq_p^2, dq_p dq_d, dq_d^2]``.
-
-    A deviation of 0.2 mm already turns the tip by about 20 degrees: the linear term alone
-    errs by 0.5 mm there, with the quadratic term by 0.05 mm (default model). The expansion
-    is computed by central differences (step ``DEVIATION_STEP_MM``, six shape evaluations)
-    at the nodes of a grid of ``GRID_MM`` in (q_p, q_d), kept, and carried to q by the same
-    expansion (``c`` to within ``37 mm/mm^3 x (GRID_MM / 2)^3 / 6``, about 1e-5 mm). A
-    deterministic function of q: the live filter and the batched one get the same numbers.
-
-    Parameters
-    ----------
-    catheter : Catheter
-    """
-
-    GRID_MM = 0.02
-    MAX_NODES = 50_000
-
-    def __init__(self, catheter: Catheter) -> None:
-        self.catheter = catheter
-        self._nodes: dict[tuple[int, int], tuple[Array, Array, Array]] = {}
-
-    def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
-        found = self._nodes.get(key)
-        if found is None:
-            if len(self._nodes) >= self.MAX_NODES:
-                self._nodes.clear()
-            q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
-            found = self._nodes[key] = _expansion(self.catheter, q)
-        return found
-
-    def __call__(self, q: Array) -> tuple[Array, Array, Array]:
-        """c (B, P, 3), J (B, P, 3, 2) and K (B, P, 3, 3) at joint values q (B, 3)."""
-        q = np.asarray(q, dtype=float)
-        keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
-        delta = q[:, 1:] - keys * self.GRID_MM
-        if q.shape[0] == 1:
-            c, J, K = (a[None] for a in self.node((int(keys[0, 0]), int(keys[0, 1]))))
-        else:
-            distinct, index = np.unique(keys, axis=0, return_inverse=True)
-            nodes = [self.node((int(a), int(b))) for a, b in distinct]
-            c, J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in range(3))
-        basis = expansion_basis(delta)[:, None, :, None]  # (B, 1, 5, 1)
-        c = c + (J @ basis[:, :, :2] + K @ basis[:, :, 2:])[..., 0]
-        return c, deviation_jacobian(J, K, delta[:, None]), K
-
-
-def expansion_basis(dq: Array) -> Array:
-    """``[dq_p, dq_d, dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 5), the
-    basis of ``[J K]``."""
-    out = np.empty(dq.shape[:-1] + (5,))
-    out[..., :2] = dq
-    p, d = dq[..., 0], dq[..., 1]
-    out[..., 2] = p * p
-    out[..., 3] = p * d
-    out[..., 4] = d * d
-    return out
-
-
-def quadratic_terms(dq: Array) -> Array:
-    """``[dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 3)."""
-    return expansion_basis(dq)[..., 2:]
-
-
-def quadratic_moments(K: Array, Sigma: Array) -> tuple[Array, Array]:
-    """Mean (..., 3) and covariance (..., 3, 3) of ``K quadratic_terms(dq)`` for a zero-mean
-    Gaussian dq of covariance Sigma (..., 2, 2), K (..., 3, 3) (Isserlis' theorem)."""
-    a, b, d = Sigma[..., 0, 0], Sigma[..., 0, 1], Sigma[..., 1, 1]
-    moments = np.stack([a, b, d], -1)
-    cov = np.zeros(Sigma.shape[:-2] + (3, 3))
-    cov[..., 0, 0], cov[..., 2, 2] = 2 * a * a, 2 * d * d
-    cov[..., 1, 1] = a * d + b * b
-    cov[..., 0, 1] = cov[..., 1, 0] = 2 * a * b
-    cov[..., 1, 2] = cov[..., 2, 1] = 2 * b * d
-    cov[..., 0, 2] = cov[..., 2, 0] = 2 * b * b
-    mean = (K @ moments[..., None])[..., 0]
-    return mean, K @ cov @ np.swapaxes(K, -1, -2)
-
-
-def deviation_jacobian(J: Array, K: Array, dq: Array) -> Array:
-    """Jacobian of ``J dq + K quadratic_terms(dq)`` at dq: ``J + K dquad/ddq`` (..., 3, 2).
-
-    ``dq`` (..., 2) broadcasts against the leading axes of J (..., 3, 2) and K (..., 3, 3),
-    which give the shape of the result.
-    """
-    p, d = dq[..., 0, None], dq[..., 1, None]
-    out = J.copy()
-    out[..., 0] += 2 * p * K[..., 0] + d * K[..., 1]
-    out[..., 1] += p * K[..., 1] + 2 * d * K[..., 2]
-    return out
-
-
 def _finite_rows(a: Array, axes: tuple[int, ...]) -> Array:
     return np.isfinite(a).all(axis=axes)
 
@@ -475,7 +355,7 @@ def assemble_groups(
     q, q_dot : arrays (B, 3)
         Joint values and rates (``q_dot`` None or NaN: no velocity).
     c, J, K : arrays (B, P, 3), (B, P, 3, 2), (B, P, 3, 3)
-        :class:`ShapeExpansion` of every trial.
+        :class:`~tracker.estimators.deviation.ShapeExpansion` of every trial.
     tip, tip_cov : arrays (B, 3), (B, 3, 3), or None
     markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3), or None
         NaN rows: markers not found.
@@ -607,25 +487,6 @@ def model_error_covariance(
             + rate_var[:, None, None] * tangent[:, :, None] * tangent[:, None, :]
         )
     return M
-
-
-def deviation_prior(q: Array, joint_error_mm: float, gain_error: float) -> Array:
-    """Prior variance of the joint-equivalent deviation of (q_p, q_d), mm^2, (B, 2)."""
-    bend = gain_error * q[:, 1:]
-    return joint_error_mm * joint_error_mm + bend * bend
-
-
-def deviation_decay(
-    moved_mm: Array, length_mm: float, dt_s: Array = 0.0, rate_per_s: float = 0.0
-) -> Array:
-    """Correlation of the deviation across a frame in which the joints moved ``moved_mm``.
-
-    An Ornstein-Uhlenbeck process in the joint travel and in time: ``exp(-moved / length -
-    rate dt)``, so that the deviation forgets over ``length_mm`` of joint motion (a new
-    configuration, a new contact) and, slowly, while the joints hold (a contact made or
-    released).
-    """
-    return np.exp(-np.abs(moved_mm) / length_mm - rate_per_s * dt_s)
 
 
 def group_coefficients(y: Array, c: Array, W: Array, q_r: Array) -> Array:
@@ -800,15 +661,10 @@ __all__ = [
     "FrameGroups",
     "ViewGroups",
     "decorrelated_velocity",
-    "deviation_jacobian",
-    "deviation_decay",
-    "deviation_prior",
-    "expansion_basis",
     "fit_frame",
     "group_coefficients",
     "inlier_probability",
     "assemble_groups",
-    "ShapeExpansion",
     "jump_probability",
     "mixture_log_likelihood",
     "offered_velocity",
@@ -816,8 +672,6 @@ __all__ = [
     "velocity_offered",
     "model_error_covariance",
     "process_variance",
-    "quadratic_moments",
-    "quadratic_terms",
     "rotation_invariant",
     "trig_table",
     "wrap",

@@ -33,7 +33,8 @@ import math
 import numpy as np
 
 from models.catheter import Catheter
-from tracker.estimators.measurement import ShapeExpansion, ViewGroups, assemble_groups
+from tracker.estimators.deviation import ShapeExpansion
+from tracker.estimators.measurement import ViewGroups, assemble_groups
 from tracker.estimators.ukf_core import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,

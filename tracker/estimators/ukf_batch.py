@@ -9,7 +9,7 @@ It is the same filter, not an approximation of it: both step a
 :class:`~tracker.estimators.ukf_core.FilterBank`, where the rules (gate, restart, mismatch,
 repair) are written once, and both build each frame's measurement groups with
 :func:`~tracker.estimators.measurement.assemble_groups` from the same
-:class:`~tracker.estimators.measurement.ShapeExpansion`. Only the order of floating-point
+:class:`~tracker.estimators.deviation.ShapeExpansion`. Only the order of floating-point
 sums over the trial axis can differ (tests/tracker/test_ukf_batch.py requires 1e-9 rad and
 identical flags). Missing data are NaN (a tip, a marker, a velocity); single-view
 measurements are the live filter's only.
@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.catheter import Catheter
-from tracker.estimators.measurement import ShapeExpansion, assemble_groups
+from tracker.estimators.deviation import ShapeExpansion
+from tracker.estimators.measurement import assemble_groups
 from tracker.estimators.ukf_core import FilterBank
 from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Flag, velocity_from_positions

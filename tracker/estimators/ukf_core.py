@@ -48,16 +48,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 from scipy.linalg import lapack
 
+from tracker.estimators.deviation import deviation_decay, deviation_prior, quadratic_moments
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
-    deviation_decay,
-    deviation_prior,
     fit_frame,
     group_coefficients,
     jump_probability,
@@ -65,7 +65,6 @@ from tracker.estimators.measurement import (
     offered_velocity,
     outlier_threshold,
     process_variance,
-    quadratic_moments,
     trig_table,
     velocity_offered,
     wrap,
@@ -685,11 +684,11 @@ class FilterBank:
             noise += M[b]
         DW = D * self.Wc[:, None]
         S = np.swapaxes(DW, 1, 2) @ D
-        blocks = S.reshape(r, G, d, G, d)
-        diagonal = np.arange(G)
-        blocks[:, diagonal, :, diagonal, :] += np.moveaxis(noise, 1, 0)
+        blocks = _block_index(G, d)
+        flat = S.reshape(r, m * m)
+        flat[:, blocks] += noise.reshape(r, -1)
         # Per group: its block of S, its squared residual, the gate.
-        S_g = np.moveaxis(blocks[:, diagonal, :, diagonal, :], 0, 1)
+        S_g = flat[:, blocks].reshape(r, G, d, d)
         rho_g = rho.reshape(r, G, d)
         d2 = np.einsum("rgi,rgi->rg", rho_g, (np.linalg.inv(S_g) @ rho_g[..., None])[..., 0])
         threshold = outlier_threshold(d, s.outlier_probability, s.outlier_scale)
@@ -724,12 +723,14 @@ class FilterBank:
                 outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
                            - 0.5 * (logdet_g + d * _LOG_2PI)), -1
             )  # fmt: skip
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # The frame's information about delta_L: how much it shrank the variance.
-            information = 1.0 / P_post[:, 0, 0] - 1.0 / P[:, 0, 0]
         usable = ok_sigma & ok_S & (n_in > 0)
-        post_ok = np.isfinite(P_post[:, 0, 0]) & (P_post[:, 0, 0] > 0) & np.isfinite(x_post[:, 0])
-        uninformative = usable & post_ok & ~(information > self.min_information)
+        prior_var, post_var = P[:, 0, 0], P_post[:, 0, 0]
+        post_ok = (post_var > 0) & np.isfinite(x_post[:, 0])
+        # The frame's information about delta_L (how much it shrank the variance) must
+        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
+        uninformative = usable & post_ok & ~(
+            prior_var - post_var > self.min_information * prior_var * post_var
+        )
         done = usable & post_ok & ~uninformative
         status = np.where(outlier.any(-1), _F["OUTLIER_REJECTED"], 0)
         if not done.all():
@@ -753,6 +754,14 @@ class FilterBank:
             dof=np.where(shown, d * n_in, 0), rejected=outlier.sum(-1), inlier=inlier,
             fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
         )  # fmt: skip
+
+
+@lru_cache(maxsize=64)
+def _block_index(G: int, d: int) -> Array:
+    """Flat indices of the G diagonal d x d blocks of a (G d, G d) matrix, block-major."""
+    m = G * d
+    g, i, j = np.meshgrid(np.arange(G), np.arange(d), np.arange(d), indexing="ij")
+    return ((g * d + i) * m + g * d + j).ravel()
 
 
 def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:

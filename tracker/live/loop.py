@@ -118,6 +118,7 @@ class LiveSummary:
     sink_failures: dict[str, str] = field(default_factory=dict)
     sink_dropped: dict[str, int] = field(default_factory=dict)  # queued sinks behind
     sink_stalls: dict[str, int] = field(default_factory=dict)
+    age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
     latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
     cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
     duration_s: float = 0.0
@@ -175,12 +176,13 @@ class LiveSummary:
                 )
         if self.estimator_errors:
             out.append(f"  estimator errors: {self.estimator_errors}")
-        lat, cyc = self.latency_ms, self.cycle_ms
+        lat, cyc, age = self.latency_ms, self.cycle_ms, self.age_ms
         if lat:
             out.append(
                 f"  latency image -> estimate: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms,"
                 f" max {lat['max']:.2f} ms; -> loop done: p50 {cyc['p50']:.2f} ms,"
-                f" p99 {cyc['p99']:.2f} ms"
+                f" p99 {cyc['p99']:.2f} ms; age of a frame when taken: p50 {age['p50']:.2f} ms,"
+                f" max {age['max']:.2f} ms"
             )
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
@@ -321,6 +323,7 @@ class LiveTracker:
         for sink in sinks:
             self.add_sink(sink)
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
+        self.age = LatencyRecorder()
         self.latency = LatencyRecorder()
         self.cycle = LatencyRecorder()
         self._last_time_s: float | None = None
@@ -476,6 +479,8 @@ class LiveTracker:
         time_s = float(item[0] if is_images else item.time_s)
         if not self._admit(time_s, now):
             return None
+        reference = time_s if self.time_is_monotonic else received_s
+        self.age.add(now - reference)
 
         frame = item if isinstance(item, Frame) else None
         try:
@@ -534,7 +539,6 @@ class LiveTracker:
         s.frames_no_joints += int(bool(status & LiveStatus.NO_JOINTS))
         s.frames_clamped_joints += int(bool(status & LiveStatus.JOINTS_CLAMPED))
         s.frames_extrapolated_joints += int(bool(status & LiveStatus.JOINTS_EXTRAPOLATED))
-        reference = time_s if self.time_is_monotonic else received_s
         latency_s = self.monotonic() - reference
         self.latency.add(latency_s)
         self._dispatch(frame, observation, estimate, latency_s, status)
@@ -690,6 +694,7 @@ class LiveTracker:
                 except OSError as exc:
                     self.report(f"closing failed: {exc}")
         self._superseded()
+        s.age_ms = self.age.percentiles_ms()
         s.latency_ms = self.latency.percentiles_ms()
         s.cycle_ms = self.cycle.percentiles_ms()
 

@@ -80,6 +80,10 @@ class SessionSettings:
     keep_serving : bool
         With ``--serve``, keep the rerun stream open after the run, for web viewers to look
         (:meth:`LiveSession.close` ends it).
+    queued : bool
+        Every output but the estimate datagram in a thread of its own behind a queue (live
+        runs). False: every output on the loop's thread, every frame (a recording played as
+        fast as possible, where nothing runs in real time).
     viewer_queue, igtl_queue : int
         Frames queued for the rerun output and for OpenIGTLink; when full, the oldest is
         dropped (counted).
@@ -102,6 +106,7 @@ class SessionSettings:
     jpeg_quality: int | None = 80
     application_id: str = "cathtrack"
     keep_serving: bool = False
+    queued: bool = True
     viewer_queue: int = 32
     igtl_queue: int = 8
     record_queue: int = 512
@@ -112,6 +117,15 @@ class SessionSettings:
         for name in ("viewer_queue", "igtl_queue", "record_queue"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+def _behind_queue(
+    settings: SessionSettings, sink: Sink, capacity: int, keep_all: bool, report
+) -> Sink:
+    """``sink`` in a thread of its own behind a queue, unless the settings say otherwise."""
+    if not settings.queued:
+        return sink
+    return QueuedSink(sink, capacity, keep_all=keep_all, report=report)
 
 
 class LiveSession:
@@ -158,7 +172,8 @@ class LiveSession:
     viewer : RerunSink or None
         The rerun stream, for sinks that log more to it...
     viewer_thread : QueuedSink or None
-        ...from its thread only (:meth:`QueuedSink.submit`): rerun's time is per thread.
+        ...from its thread only (:meth:`QueuedSink.submit`; rerun's time is per thread),
+        when the outputs are queued.
     inputs, outputs : list of str
         What the session listens to and sends to, for the user.
     """
@@ -212,7 +227,9 @@ class LiveSession:
                     report=report,
                 )
                 stack.callback(self.igtl.close)
-                sinks.append(QueuedSink(self.igtl, settings.igtl_queue, report=report))
+                sinks.append(
+                    _behind_queue(settings, self.igtl, settings.igtl_queue, False, report)
+                )
                 self.outputs.append(f"OpenIGTLink on tcp://{self.igtl.host}:{self.igtl.port}")
             if rerun_args is not None:
                 blueprint = default_blueprint(
@@ -247,8 +264,11 @@ class LiveSession:
                     close_stream=not (settings.keep_serving and self.output.served_url),
                 )
                 stack.callback(viewer_sink.close)  # stops the viewer watch too
-                self.viewer_thread = QueuedSink(viewer_sink, settings.viewer_queue, report=report)
-                sinks.append(self.viewer_thread)
+                sinks.append(
+                    _behind_queue(settings, viewer_sink, settings.viewer_queue, False, report)
+                )
+                if isinstance(sinks[-1], QueuedSink):
+                    self.viewer_thread = sinks[-1]
                 self.outputs.extend(f"rerun {target}" for target in self.output.targets)
 
             # ---- inputs
@@ -279,14 +299,14 @@ class LiveSession:
                         writer.write_background(view, background)
                 recording = RecordingSink(writer, settings.estimator, joints=self.joints)
                 sinks.append(
-                    QueuedSink(recording, settings.record_queue, keep_all=True, report=report)
+                    _behind_queue(settings, recording, settings.record_queue, True, report)
                 )
                 self.outputs.append(f"recording {settings.record_path}")
             if settings.csv_path is not None:
                 csv_sink = CsvSink(settings.csv_path)
                 stack.callback(csv_sink.close)
                 sinks.append(
-                    QueuedSink(csv_sink, settings.record_queue, keep_all=True, report=report)
+                    _behind_queue(settings, csv_sink, settings.record_queue, True, report)
                 )
                 self.outputs.append(f"CSV {settings.csv_path}")
 

@@ -3,9 +3,10 @@ the geometry drawn (the bending-plane fan, the dial, marker rings). :mod:`tracke
 logs to these paths.
 
 - ``world/...`` -- the 3-D scene in {W}, mm: the catheter model at the estimated bending plane
-  and, where known, at the true one; the reconstructed markers; the tip's +/-2 sigma arc of
-  uncertainty about the base axis and the +/-2 sigma fan of the bending plane; the cameras
-  (pinhole views) with their images;
+  (with the plane as a surface) and, where known, at the true one; the reconstructed markers;
+  the tip's +/-2 sigma arc of uncertainty about the base axis and the +/-2 sigma fan of the
+  bending plane; the cameras (pinhole views; left out of the default 3-D view, which is
+  framed on the catheter);
 - ``world/cameras/<view>/...`` -- each camera's image, the segmented markers (rings) and the
   markers reprojected from the estimate (dots, pinhole rigs); ``views/<view>/...`` the same
   points in mm for the paper's orthographic planes, which have no camera;
@@ -260,10 +261,9 @@ def default_blueprint(
     eye = grid = None
     if scene is not None:
         pinhole = scene.rig.kind == "pinhole"
-        views = scene.rig.views
-        names = getattr(scene.rig, "names", None) or VIEWS
         named_views = [
-            (name, view_bounds(scene, view)) for name, view in zip(names, views, strict=True)
+            (name, view_bounds(scene, view))
+            for name, view in zip(scene.rig.names, scene.rig.views, strict=True)
         ]
         eye, grid = scene_eye(scene), base_grid(scene)
     primary = primary or (methods[0] if methods else None)

@@ -1,0 +1,178 @@
+"""The joint-equivalent deviation of the shape: the model error both filters estimate.
+
+A contact or a miscalibrated model changes the catheter's shape as a deviation of its
+bending joints would (the paper made its deflections that way), so the filters carry that
+deviation ``dq = (dq_p, dq_d)`` (mm) in their state (docs/design.md section 5). This module
+holds its measurement side, the shape's second-order expansion ``c(q + dq) = c + J dq + K
+[dq_p^2, dq_p dq_d, dq_d^2]`` (:class:`ShapeExpansion`), and its process side, a prior that
+grows with the bending (:func:`deviation_prior`) and a decorrelation with the joint travel
+and time (:func:`deviation_decay`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.catheter import Catheter
+
+Array = np.ndarray
+
+# Step of the central differences of the shape in the joints, mm.
+DEVIATION_STEP_MM = 1e-3
+
+
+def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array, Array]:
+    """c, J and K at q by central differences (six shape evaluations)."""
+    h = DEVIATION_STEP_MM
+
+    def points(dp: float, dd: float) -> Array:
+        shape = catheter.shape_vectors(q + np.array([0.0, dp, dd]))
+        return np.concatenate([shape.c_tip_mm[None], shape.c_markers_mm])
+
+    c = points(0.0, 0.0)
+    plus_p, minus_p = points(h, 0.0), points(-h, 0.0)
+    plus_d, minus_d = points(0.0, h), points(0.0, -h)
+    both = points(h, h)
+    J = np.stack([(plus_p - minus_p) / (2 * h), (plus_d - minus_d) / (2 * h)], -1)
+    K = np.stack(
+        [
+            0.5 * (plus_p - 2 * c + minus_p) / h**2,
+            (both - plus_p - plus_d + c) / h**2,
+            0.5 * (plus_d - 2 * c + minus_d) / h**2,
+        ],
+        -1,
+    )
+    return c, J, K
+
+
+class ShapeExpansion:
+    """Model vectors of the tip and the markers and their second-order expansion in a joint
+    deviation: ``c(q + dq) = c + J dq + K [dq_p^2, dq_p dq_d, dq_d^2]``.
+
+    A deviation of 0.2 mm already turns the tip by about 20 degrees: the linear term alone
+    errs by 0.5 mm there, with the quadratic term by 0.05 mm (default model). ``c`` is the
+    model's own (the single-configuration path of
+    :meth:`~models.catheter.Catheter.shape_vectors`, once per distinct configuration, so that
+    a noise-free frame is fitted exactly); J and K are computed by central differences (step
+    ``DEVIATION_STEP_MM``, six shape evaluations) at the nodes of a grid of ``GRID_MM`` in
+    (q_p, q_d), kept, and carried to q (J by the expansion itself; K changes by about 1 % over
+    a grid step). A deterministic function of q: the live filter and the batched one get the
+    same numbers.
+
+    Parameters
+    ----------
+    catheter : Catheter
+    """
+
+    GRID_MM = 0.02
+    MAX_NODES = 50_000
+
+    def __init__(self, catheter: Catheter) -> None:
+        self.catheter = catheter
+        self._nodes: dict[tuple[int, int], tuple[Array, Array, Array]] = {}
+
+    def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
+        found = self._nodes.get(key)
+        if found is None:
+            if len(self._nodes) >= self.MAX_NODES:
+                self._nodes.clear()
+            q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
+            found = self._nodes[key] = _expansion(self.catheter, q)
+        return found
+
+    def points(self, q: Array) -> Array:
+        """Model vectors of the tip and the markers at one q (3,): (P, 3), mm."""
+        shape = self.catheter.shape_vectors(q)
+        return np.concatenate([shape.c_tip_mm[None], shape.c_markers_mm])
+
+    def __call__(self, q: Array) -> tuple[Array, Array, Array]:
+        """c (B, P, 3), J (B, P, 3, 2) and K (B, P, 3, 3) at joint values q (B, 3)."""
+        q = np.asarray(q, dtype=float)
+        keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
+        delta = q[:, 1:] - keys * self.GRID_MM
+        if q.shape[0] == 1:
+            _, J, K = (a[None] for a in self.node((int(keys[0, 0]), int(keys[0, 1]))))
+            c = self.points(q[0])[None]
+        else:
+            distinct, index = np.unique(keys, axis=0, return_inverse=True)
+            nodes = [self.node((int(a), int(b))) for a, b in distinct]
+            J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in (1, 2))
+            rows, where = np.unique(q, axis=0, return_inverse=True)
+            c = np.array([self.points(row) for row in rows])[where.ravel()]
+        return c, deviation_jacobian(J, K, delta[:, None]), K
+
+
+def expansion_basis(dq: Array) -> Array:
+    """``[dq_p, dq_d, dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 5), the
+    basis of ``[J K]``."""
+    out = np.empty(dq.shape[:-1] + (5,))
+    out[..., :2] = dq
+    p, d = dq[..., 0], dq[..., 1]
+    out[..., 2] = p * p
+    out[..., 3] = p * d
+    out[..., 4] = d * d
+    return out
+
+
+def quadratic_terms(dq: Array) -> Array:
+    """``[dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 3)."""
+    return expansion_basis(dq)[..., 2:]
+
+
+def quadratic_moments(K: Array, Sigma: Array) -> tuple[Array, Array]:
+    """Mean (..., 3) and covariance (..., 3, 3) of ``K quadratic_terms(dq)`` for a zero-mean
+    Gaussian dq of covariance Sigma (..., 2, 2), K (..., 3, 3) (Isserlis' theorem)."""
+    a, b, d = Sigma[..., 0, 0], Sigma[..., 0, 1], Sigma[..., 1, 1]
+    moments = np.stack([a, b, d], -1)
+    cov = np.zeros(Sigma.shape[:-2] + (3, 3))
+    cov[..., 0, 0], cov[..., 2, 2] = 2 * a * a, 2 * d * d
+    cov[..., 1, 1] = a * d + b * b
+    cov[..., 0, 1] = cov[..., 1, 0] = 2 * a * b
+    cov[..., 1, 2] = cov[..., 2, 1] = 2 * b * d
+    cov[..., 0, 2] = cov[..., 2, 0] = 2 * b * b
+    mean = (K @ moments[..., None])[..., 0]
+    return mean, K @ cov @ np.swapaxes(K, -1, -2)
+
+
+def deviation_jacobian(J: Array, K: Array, dq: Array) -> Array:
+    """Jacobian of ``J dq + K quadratic_terms(dq)`` at dq: ``J + K dquad/ddq`` (..., 3, 2).
+
+    ``dq`` (..., 2) broadcasts against the leading axes of J (..., 3, 2) and K (..., 3, 3),
+    which give the shape of the result.
+    """
+    p, d = dq[..., 0, None], dq[..., 1, None]
+    out = J.copy()
+    out[..., 0] += 2 * p * K[..., 0] + d * K[..., 1]
+    out[..., 1] += p * K[..., 1] + 2 * d * K[..., 2]
+    return out
+
+
+def deviation_prior(q: Array, joint_error_mm: float, gain_error: float) -> Array:
+    """Prior variance of the joint-equivalent deviation of (q_p, q_d), mm^2, (B, 2)."""
+    bend = gain_error * q[:, 1:]
+    return joint_error_mm * joint_error_mm + bend * bend
+
+
+def deviation_decay(
+    moved_mm: Array, length_mm: float, dt_s: Array = 0.0, rate_per_s: float = 0.0
+) -> Array:
+    """Correlation of the deviation across a frame in which the joints moved ``moved_mm``.
+
+    An Ornstein-Uhlenbeck process in the joint travel and in time: ``exp(-moved / length -
+    rate dt)``, so that the deviation forgets over ``length_mm`` of joint motion (a new
+    configuration, a new contact) and, slowly, while the joints hold (a contact made or
+    released).
+    """
+    return np.exp(-np.abs(moved_mm) / length_mm - rate_per_s * dt_s)
+
+
+__all__ = [
+    "DEVIATION_STEP_MM",
+    "ShapeExpansion",
+    "deviation_decay",
+    "deviation_jacobian",
+    "deviation_prior",
+    "expansion_basis",
+    "quadratic_moments",
+    "quadratic_terms",
+]
