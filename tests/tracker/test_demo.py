@@ -29,6 +29,7 @@ from replay.simulation.sources import session_joints, simulated_session
 from tracker.io.datagrams import decode_estimate, encode_joints, encode_markers
 from tracker.io.recording import RecordingWriter, open_recording
 from tracker.live.sinks import CSV_COLUMNS
+from tracker.viewer import layout
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -100,25 +101,25 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
     viewer_dropped = int(table_value(out, "rerun: frames dropped / waits (behind)").split(" / ")[0])
     logged = processed - viewer_dropped
     rows = entity_rows(rrd)
-    for entity in (
-        "/world/catheter/estimate",
-        "/world/catheter/truth",
-        "/world/catheter/plane_fan",
-        "/world/markers",
-        "/world/cameras/front/segmented",
-        "/world/cameras/side/reprojected",
-        "/series/delta_L/ukf",
-        "/series/delta_L/ukf_plus2sigma",
-        "/series/delta_L/truth",
-        "/series/error/ukf",
-        "/series/latency_ms/estimate",
-        "/series/frames/dropped",
+    for path in (
+        layout.CATHETER_ESTIMATE,
+        layout.CATHETER_TRUTH,
+        layout.PLANE_FAN,
+        layout.MARKERS_3D,
+        f"{layout.camera_path('front')}/segmented",
+        f"{layout.camera_path('side')}/reprojected",
+        layout.delta_L_path("ukf"),
+        layout.band_path("ukf", "plus"),
+        layout.DELTA_L_TRUTH,
+        layout.error_path("ukf"),
+        layout.LATENCY_ESTIMATE,
+        layout.FRAMES_DROPPED,
     ):
-        assert rows.get(entity, 0) >= logged - 1, entity
-    assert rows.get("/series/nis/ukf", 0) >= logged - 3  # points where the NIS is finite
-    for entity in ("/world/cameras/front/image", "/world/cameras/side/image"):
-        assert rows.get(entity, 0) >= logged // 2 - 1, entity  # every second pair
-    assert rows.get("/series/delta_L/tip-position", 0) > logged // 2  # where it is valid
+        assert rows.get(f"/{path}", 0) >= logged - 1, path
+    assert rows.get(f"/{layout.nis_path('ukf')}", 0) >= logged - 3  # where the NIS is finite
+    for view in ("front", "side"):
+        assert rows.get(f"/{layout.image_path(view)}", 0) >= logged // 2 - 1  # every second
+    assert rows.get(f"/{layout.delta_L_path('tip-position')}", 0) > logged // 2  # where valid
     assert len(RrdReader(rrd).blueprints()) == 1  # the default blueprint went with the data
     # The table: every method, the loop, the file.
     for method in ("ukf (live, sent)", "tip-position (same observations)"):
