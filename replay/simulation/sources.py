@@ -8,8 +8,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
+import os
 import queue
 import signal
 import threading
@@ -157,6 +159,10 @@ def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max
     pairs the cameras have released; a failure goes to ``pairs`` as its message.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
+    with contextlib.suppress(OSError, AttributeError):
+        # Below the loop's priority: ahead of time, the renderer can wait for a core; the
+        # loop should not (real cameras cost the loop's machine nothing).
+        os.nice(10)
     try:
         rng = np.random.default_rng(seed)
         for k in range(len(q)):

@@ -97,7 +97,7 @@ def test_live_receiver_and_recording_give_the_same_joint_values(tmp_path, rates)
     ) as writer:
         writer.write_joints(t, q, q_dot if rates else None)
         for time_s in frame_times:
-            writer.write_frame(Frame(time_s, np.zeros(3), None, uv, uv, cov, cov))
+            writer.write_frame(Frame(time_s, np.zeros(3), None, (uv, uv), (cov, cov)))
     with open_recording(path) as recording:
         recorded = [x.frame for x in recording.frames()]
     assert len(recorded) == frame_times.size

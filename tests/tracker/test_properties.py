@@ -7,7 +7,7 @@ example runs a whole sequence, so the filter meets its own history (held estimat
 re-acquisitions, the std cap). The per-frame randomness comes from a numpy generator seeded
 by the example, so every run is deterministic (``derandomize=True``).
 
-UKF steps in total: 90 sequences x 300 frames + 30 x 200 = 33,000; grid filter steps:
+UKF steps in total: 60 sequences x 250 frames + 25 x 200 = 20,000; grid filter steps:
 25 x 120 = 3,000.
 """
 
@@ -246,14 +246,14 @@ def check_run(ukf: BendingPlaneUKF, frames: list[Observation]) -> None:
             assert 0.0 < ukf.noise_scale < np.inf
 
 
-@settings(max_examples=90, **PROPERTY_SETTINGS)
+@settings(max_examples=60, **PROPERTY_SETTINGS)
 @given(scenario=scenarios(), ukf_settings=ukf_settings())
 def test_ukf_survives_any_sequence(scenario, ukf_settings):
-    frames, _ = sequence(scenario, 300)
+    frames, _ = sequence(scenario, 250)
     check_run(BendingPlaneUKF(catheter_for(scenario.delta_2), ukf_settings), frames)
 
 
-@settings(max_examples=30, **PROPERTY_SETTINGS)
+@settings(max_examples=25, **PROPERTY_SETTINGS)
 @given(scenario=scenarios(near_straight=True), ukf_settings=ukf_settings())
 def test_ukf_survives_near_straight_sequences(scenario, ukf_settings):
     """Mostly uninformative frames: long held stretches, the std cap, re-acquisition."""

@@ -23,6 +23,7 @@ from models.imaging import default_orthographic_rig, default_pinhole_rig
 from models.rotations import rot_y, rot_z, rotate_z, wrap_angle
 from tracker.estimators import make_estimator
 from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings, sigma_sqrt, spd_inverse
+from tracker.estimators.ukf_batch import run_ukf_batch
 from tracker.types import Flag, Observation, ViewMeasurement
 
 DELTA_2 = [0.0, np.pi / 2]
@@ -192,6 +193,21 @@ def test_sigma_sqrt_and_inverse_are_cholesky_with_documented_jitter():
 
 
 # ---------------------------------------------------------------------------- statistics
+def simulate_runs(catheter, qs, deltas, rng, n_runs, sigma_mm=1.0):
+    """``n_runs`` noisy runs of a trajectory as the arrays of ``run_ukf_batch`` (tips (B, T, 3),
+    markers (B, T, M, 3)), deltas (T,) or (B, T)."""
+    n = qs.shape[0]
+    deltas = np.broadcast_to(deltas, (n_runs, n))
+    shape = catheter.shape_vectors(qs)
+    angle = qs[:, 0] + deltas
+    cov = noise_cov(sigma_mm)
+    root = np.linalg.cholesky(cov)
+    tips = rotate_z(shape.c_tip_mm, angle) + rng.normal(size=(n_runs, n, 3)) @ root.T
+    markers = rotate_z(shape.c_markers_mm, angle[..., None])
+    markers = markers + rng.normal(size=markers.shape) @ root.T
+    return tips, markers, cov
+
+
 @pytest.mark.parametrize(
     "delta_2, settings",
     [(0.0, QUIET), (np.pi / 2, QUIET), (0.0, UKFSettings(process_noise_rad2_s=0.0))],
@@ -200,22 +216,21 @@ def test_sigma_sqrt_and_inverse_are_cholesky_with_documented_jitter():
 def test_final_error_reaches_the_cramer_rao_bound_over_100_frames(delta_2, settings):
     """RMS of the final estimate over 200 runs of N = 100 frames <= 1.3 CRB / sqrt(N), and
     the reported std is the bound. With the model error on, a planar catheter loses nothing:
-    the deviation moves the shape within its bending plane."""
+    the deviation moves the shape within its bending plane. (The runs go through
+    run_ukf_batch: the same filter, trial-batched, tests/tracker/test_ukf_batch.py.)"""
     catheter = default_catheter(delta_2)
-    ukf = BendingPlaneUKF(catheter, settings)
     n_frames, n_runs, truth = 100, 200, 0.5
-    rng = np.random.default_rng(11)
     qs = np.broadcast_to(BENT, (n_frames, 3))
-    errors, stds = [], []
-    for _ in range(n_runs):
-        final = run(ukf, simulate(catheter, qs, truth, rng))[-1]
-        assert final.valid and Flag.HELD not in final.flags
-        errors.append(wrap_angle(final.delta_L_rad - truth))
-        stds.append(final.std_rad)
+    tips, markers, cov = simulate_runs(catheter, qs, truth, np.random.default_rng(11), n_runs)
+    time = np.arange(n_frames) * DT_S
+    result = run_ukf_batch(catheter, settings, time, qs, None, tips, cov, markers, cov)
+    assert result.valid[:, -1].all()
+    assert not np.any(result.flags[:, -1] & Flag.HELD.value)
+    errors = wrap_angle(result.delta_L_rad[:, -1] - truth)
     bound = float(crb_markers(catheter, BENT, truth, noise_cov(1.0))) / np.sqrt(n_frames)
     rms = float(np.sqrt(np.mean(np.square(errors))))
     assert rms <= 1.3 * bound
-    assert np.median(stds) == pytest.approx(bound, rel=0.05)
+    assert np.median(result.std_rad[:, -1]) == pytest.approx(bound, rel=0.05)
 
 
 def test_nees_and_nis_lie_in_their_chi_square_bands():
@@ -228,30 +243,26 @@ def test_nees_and_nis_lie_in_their_chi_square_bands():
     """
     catheter = default_catheter(np.pi / 2)
     settings = UKFSettings(process_noise_rad2_s=2e-3, rotation_noise_gain_rad=5e-3, **EXACT)
-    ukf = BendingPlaneUKF(catheter, settings)
     n_frames, n_runs = 60, 200
     t = np.arange(n_frames) * DT_S
     q_dot = np.array([0.8, 0.5, -0.4])
     qs = np.array([0.3, 0.2, 0.9]) + t[:, None] * q_dot
     intensity = settings.process_noise_rad2_s + settings.rotation_noise_gain_rad * q_dot[0]
     rng = np.random.default_rng(5)
-    nees_runs, nis_sum, nis_dof = [], 0.0, 0
-    for _ in range(n_runs):
-        steps = rng.normal(0.0, np.sqrt(intensity * DT_S), n_frames)
-        steps[0] = rng.uniform(-np.pi, np.pi)
-        deltas = np.cumsum(steps)
-        frames = simulate(catheter, qs, deltas, rng, q_dots=np.broadcast_to(q_dot, qs.shape))
-        estimates = run(ukf, frames)
-        assert all(e.valid for e in estimates)
-        errors = wrap_angle(np.array([e.delta_L_rad for e in estimates]) - deltas)
-        variances = np.array([e.std_rad for e in estimates]) ** 2
-        nees_runs.append(np.mean(errors**2 / variances))
-        nis_sum += sum(e.nis for e in estimates if e.nis is not None)
-        nis_dof += sum(e.nis_dof for e in estimates if e.nis is not None)
+    steps = rng.normal(0.0, np.sqrt(intensity * DT_S), (n_runs, n_frames))
+    steps[:, 0] = rng.uniform(-np.pi, np.pi, n_runs)
+    deltas = np.cumsum(steps, axis=1)
+    tips, markers, cov = simulate_runs(catheter, qs, deltas, rng, n_runs)
+    q_dots = np.broadcast_to(q_dot, qs.shape)
+    result = run_ukf_batch(catheter, settings, t, qs, q_dots, tips, cov, markers, cov)
+    assert result.valid.all()
+    errors = wrap_angle(result.delta_L_rad - deltas)
+    nees_runs = np.mean(errors**2 / result.std_rad**2, axis=1)
     nees_low, nees_high = chi2.ppf([0.025, 0.975], n_runs) / n_runs
     assert nees_low <= np.mean(nees_runs) <= nees_high
-    nis_low, nis_high = chi2.ppf([0.025, 0.975], nis_dof)
-    assert nis_low <= nis_sum <= nis_high
+    shown = np.isfinite(result.nis)
+    nis_low, nis_high = chi2.ppf([0.025, 0.975], result.nis_dof[shown].sum())
+    assert nis_low <= result.nis[shown].sum() <= nis_high
 
 
 def velocity_comparison(settings, frames_for_run, n_runs, rng, truth):

@@ -1,14 +1,15 @@
 """Point-mass (grid) filter of delta_L: the exact Bayesian reference for the UKF.
 
 delta_L is one angle, so its posterior can be held on a grid of cells over the circle and
-computed without approximation beyond the grid. :class:`GridFilter` does so with the UKF's
-process and measurement models (:mod:`tracker.estimators.measurement`, the same
-:class:`~tracker.estimators.ukf_settings.UKFSettings`):
+computed on the grid. :class:`GridFilter` does so with the UKF's process and measurement
+models (:mod:`tracker.estimators.measurement`, :mod:`tracker.estimators.deviation`, the same
+:class:`~tracker.estimators.ukf_settings.UKFSettings`); the approximations are the
+deviation's (below):
 
 - the joint-equivalent deviation dq of the shape is Rao-Blackwellised: every cell carries
   the Gaussian of dq given that cell's angle, one mean per cell (its residuals use the
   second-order shape) and one covariance for all (the deviation's Jacobian does not depend
-  on the angle; it is taken at the deviation of the posterior mean), updated by a Kalman
+  on the angle; it is taken at the deviation of the most probable cell), updated by a Kalman
   filter;
 - predict: the random walk is a convolution of the grid with a wrapped normal, applied
   exactly as a product of Fourier coefficients ``exp(-k^2 var / 2)`` (one real FFT each
@@ -20,7 +21,7 @@ process and measurement models (:mod:`tracker.estimators.measurement`, the same
   given the cell (their common dq uncertainty enters each group's covariance); single-view
   points are projected on every cell;
 - the estimate is the circular mean of the posterior and its std the root of the posterior
-  variance (plus a cell's own ``h^2 / 12``).
+  variance (plus a cell's own ``h^2 / 12``); 2,048 cells by default (0.18 degree cells).
 
 It carries no gate, restart or mismatch rule: a multimodal posterior (a nearly straight
 catheter, a torsion jump) is simply represented. It starts reporting once the posterior std

@@ -284,11 +284,15 @@ class QueuedSink:
             if self.failure is not None:
                 continue
             try:
+                if idle is not None and not self._closing:
+                    sys.setprofile(self._yield_to_loop)
                 job()
                 self.handled += 1
             except Exception as exc:  # any failure: report once, disable, go on draining
                 self.failure = f"{type(exc).__name__}: {exc}"
                 self.report(f"sink {self.name} failed and is disabled ({self.failure})")
+            finally:
+                sys.setprofile(None)
         try:
             self.sink.close()
         except Exception as exc:
@@ -296,6 +300,16 @@ class QueuedSink:
             self.report(f"sink {self.name} failed to close ({exc})")
         finally:
             self._closed.set()
+
+    def _yield_to_loop(self, frame, event, arg) -> None:
+        """At every Python call of a job: wait while the loop processes a frame.
+
+        The interpreter runs one thread at a time; a job that holds it while the loop works
+        on a frame delays the loop (by up to the switch interval each time the loop lets
+        go of it for a system or numpy call). Pausing here hands the loop its frame's time.
+        """
+        if event == "call" and not self.idle.is_set():
+            self.idle.wait(self.idle_wait_s)
 
     def close(self, timeout_s: float | None = None) -> bool:
         """Finish the queued jobs, close the sink; False if that took over ``timeout_s``."""
