@@ -64,6 +64,8 @@ def execute(
     scheduler: str | None = None,
     progress: bool = False,
     description: str = "",
+    on_result: Callable[[int, object], None] | None = None,
+    unit: str = "task",
 ) -> list:
     """``[function(settings, task) for task in tasks]`` in task order, run in parallel.
 
@@ -77,16 +79,23 @@ def execute(
         Address of a Dask scheduler (``tcp://host:8786``) to run the tasks on instead.
     progress : bool
         Show a progress bar on stderr.
+    on_result : callable, optional
+        ``on_result(index, result)`` as each task finishes (in completion order), e.g. to keep
+        what was done when a later task raises.
     """
     workers = worker_count(workers)
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
 
+    def done(index: int, result: object) -> None:
+        if on_result is not None:
+            on_result(index, result)
+
     def progress_bar() -> tqdm:
         return tqdm(
             total=len(tasks),
             desc=description,
-            unit="task",
+            unit=unit,
             disable=not progress,
             file=sys.stderr,
             dynamic_ncols=True,
@@ -94,12 +103,13 @@ def execute(
 
     if scheduler:
         with progress_bar() as bar:
-            return _execute_dask(function, settings, tasks, scheduler, bar)
+            return _execute_dask(function, settings, tasks, scheduler, bar, done)
     if workers == 1 or len(tasks) <= 1:
         results = []
         with progress_bar() as bar:
-            for task in tasks:
+            for i, task in enumerate(tasks):
                 results.append(function(settings, task))
+                done(i, results[-1])
                 bar.update()
         return results
     with ProcessPoolExecutor(max_workers=min(workers, len(tasks))) as pool:
@@ -109,13 +119,15 @@ def execute(
         results = [None] * len(tasks)
         with progress_bar() as bar:
             for future in as_completed(futures):
-                results[futures[future]] = future.result()
+                i = futures[future]
+                results[i] = future.result()
+                done(i, results[i])
                 bar.update()
         return results
 
 
 def _execute_dask(
-    function: Callable, settings: object, tasks: Sequence, scheduler: str, bar
+    function: Callable, settings: object, tasks: Sequence, scheduler: str, bar, done: Callable
 ) -> list:
     # Imported here: dask.distributed takes a third of a second to import, and only this path
     # needs it.
@@ -133,7 +145,9 @@ def _execute_dask(
         index = {future.key: i for i, future in enumerate(futures)}
         results = [None] * len(tasks)
         for future in dask_completed(futures, loop=client.loop):
-            results[index[future.key]] = future.result()
+            i = index[future.key]
+            results[i] = future.result()
+            done(i, results[i])
             bar.update()
         return results
     finally:

@@ -13,7 +13,6 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -23,7 +22,7 @@ from tqdm import tqdm
 from models.bounds import crb_tip
 from models.catheter import Catheter
 from models.rotations import wrap_angle
-from replay.parallel import single_blas_thread
+from replay.parallel import execute, single_blas_thread
 from replay.simulation.simulator import Scene
 from tracker.estimators import estimator_names, make_estimator
 from tracker.io.recording import (
@@ -377,6 +376,11 @@ def _run_method(
         return estimates, time.perf_counter() - started
 
 
+def _method_task(data: tuple[Catheter, Sequence[Observation]], name: str):
+    catheter, observations = data
+    return _run_method(name, catheter, observations)
+
+
 def _run_estimators(
     catheter: Catheter,
     observations: Sequence[Observation],
@@ -384,27 +388,18 @@ def _run_estimators(
     workers: int,
     progress: bool,
 ) -> dict[str, tuple[tuple[Estimate, ...], float]]:
-    bar = progress_bar(len(methods), "estimate", progress, unit="method")
-    out = {}
-    try:
-        if workers <= 1 or len(methods) <= 1:
-            for name in methods:
-                bar.set_postfix_str(name)
-                out[name] = _run_method(name, catheter, observations)
-                bar.update()
-            return out
-        # The slowest methods first, so that they do not start last.
-        slow_first = sorted(methods, key=lambda m: (not m.endswith("-lsq"), m))
-        with ProcessPoolExecutor(max_workers=min(workers, len(methods))) as pool:
-            futures = {
-                pool.submit(_run_method, name, catheter, observations): name for name in slow_first
-            }
-            for future in as_completed(futures):
-                out[futures[future]] = future.result()
-                bar.update()
-        return out
-    finally:
-        bar.close()
+    # The slowest methods first, so that they do not start last.
+    order = sorted(methods, key=lambda m: (not m.endswith("-lsq"), m))
+    results = execute(
+        _method_task,
+        (catheter, observations),
+        order,
+        workers=workers,
+        progress=progress,
+        description="estimate",
+        unit="method",
+    )
+    return dict(zip(order, results, strict=True))
 
 
 def _bound_and_sigma(
