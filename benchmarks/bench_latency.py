@@ -181,12 +181,14 @@ def live_row(result: DemoResult) -> dict[str, float]:
         "received": result.estimates_received,
         "sent": result.estimates_sent,
         "viewer_dropped": sum(s.sink_dropped.values()),
+        "age_max": s.age_ms["max"],
     }
 
 
 # --------------------------------------------------------------------------------- main
 def measure(args, session, renderer, pairs, markers, folder: Path) -> dict:
-    out = {"segmentation": bench_segmentation(session, renderer, pairs)}
+    out = {"load": os.getloadavg()[0]}
+    out["segmentation"] = bench_segmentation(session, renderer, pairs)
     scene = session.scene
     truth = session.delta_L_true_rad
     segmenter = PairSegmenter(
@@ -203,7 +205,7 @@ def pairs_items(pairs, session) -> list[ImageSet]:
 
 
 def report(label: str, m: dict, quiet: dict | None) -> None:
-    print(f"  {label}:")
+    print(f"  {label} (load average {m['load']:.1f} when it started):")
     for name, (p50, p99) in m["segmentation"].items():
         print(f"    segmentation, {name:>18}: p50 {p50:6.2f} ms, p99 {p99:6.2f} ms")
     gain = m["segmentation"]["whole image"][0] / m["segmentation"]["region of interest"][0]
@@ -223,7 +225,8 @@ def report(label: str, m: dict, quiet: dict | None) -> None:
         f"    {'live session':>18}: exposure -> estimate p50 {r['p50']:6.2f} ms, p99"
         f" {r['p99']:6.2f} ms [{ok} p99 <= {target:g} ms"
         + (", no pair late" if quiet is None else "")
-        + f"]; {r['processed']} processed, {r['dropped']} dropped, {r['per_s']:.1f} estimates/s,"
+        + f"]; oldest frame taken {r['age_max']:.1f} ms after its exposure;"
+        f" {r['processed']} processed, {r['dropped']} dropped, {r['per_s']:.1f} estimates/s,"
         f" {r['received']} of {r['sent']} received; pairs rendered late {r['late']}"
         f" ({r['render_ms']:.0f} ms a pair); viewer dropped {r['viewer_dropped']};"
         f" UKF RMS {r['rms']:.2f} deg"

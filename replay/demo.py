@@ -380,7 +380,7 @@ def report_lines(
         f" {_ms(lat.get('p99', math.nan))} |",
         f"| latency image -> loop done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
         f" / {_ms(cyc.get('p99', math.nan))} |",
-        f"| estimates per second | {summary.frames_processed / max(settings.seconds, 1e-9):.1f}"
+        f"| estimates per second | {summary.frames_processed / max(summary.duration_s, 1e-9):.1f}"
         " |",
     ]
     if joints is not None:

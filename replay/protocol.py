@@ -22,10 +22,17 @@ simulated session does the same:
   image plane at the isocentre); with images, the rendered frames at sensor
   noise ``image_noise_levels_gray``, segmented by tracker.vision.segmentation as the live loop does;
 - tip deflection by contact as the paper made it: the catheter bends as if its distal joint
-  were ``q_d + offset`` while the recording reports the commanded ``q_d``.
+  were ``q_d + offset`` while the recording reports the commanded ``q_d``;
+- optionally, what else a lab meets (``lab_conditions``,
+  :class:`~replay.simulation.simulator.LabConditions`; none by default): a contact deviation
+  of q_p and q_d per configuration, a true catheter that bends more or less than the model
+  (the recording keeps the model), wrong and missing markers (markers only), and torsion that
+  winds up with the base turns within a play (:meth:`Protocol.windup_rad`).
 
 Every configuration draws from its own generator ``default_rng([seed, 2, c])``, so the
-recording does not depend on the number of worker processes.
+recording does not depend on the number of worker processes; the contact deviations come
+from ``default_rng([seed, 16])``, so that the session's layout is the same with and without
+them.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import dataclasses
 import math
 import os
 import sys
+import tomllib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,11 +58,14 @@ from replay.parallel import single_blas_thread
 from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import (
     JointTrajectory,
-    NoiseSettings,
+    LabConditions,
     Scene,
+    contact_joint_offsets,
     image_sigma,
     in_plane_joint_offset,
     simulate_frames,
+    torsion_windup,
+    truth_catheter,
 )
 from tracker.io.recording import FrameLabels, MarkerQuality, RecordingWriter
 from tracker.types import Frame
@@ -63,6 +74,15 @@ from tracker.vision.pair import PairSegmenter
 Array = np.ndarray
 
 PROTOCOL_NAME = "paper"
+LAB_CONDITIONS_UNITS = {
+    "model_scale_error": "relative scale of the modal matrices' bending columns in the truth",
+    "contact_joint_std_mm": "mm, q_p and q_d, one draw per configuration",
+    "outlier_probability": "per point and view",
+    "outlier_magnitude": "mm in the image plane at the isocentre",
+    "dropout_probability": "per point and view",
+    "windup_play_rad": "rad",
+}
+"""The units of :attr:`ProtocolSettings.lab_conditions`, recorded with the settings."""
 
 
 @dataclass(frozen=True)
@@ -110,6 +130,17 @@ class ProtocolSettings:
         With images: how each frame differs from the recorded backgrounds (gain drift and
         flicker, offset, gamma, vibration, a moved camera; none by default). A dict of its
         fields is accepted too (settings read back from a recording).
+    lab_conditions : LabConditions
+        What a lab meets besides segmentation noise (none by default; a dict of its fields
+        is accepted too). Units: ``model_scale_error`` relative (0.05: the true catheter bends
+        5 % more than the model's modal matrices say); ``contact_joint_std_mm`` mm (per
+        configuration, q_p and q_d of the true catheter off by normal deviations of this
+        std, on top of the deflection level); ``outlier_probability`` and
+        ``dropout_probability`` per point and view (markers only: with images the
+        segmentation makes its own); ``outlier_magnitude`` **mm in the image plane at the
+        isocentre**, like the noise levels (px = mm x magnification for cameras);
+        ``windup_play_rad`` rad (the torsion winds up with the base turns within this play,
+        :meth:`Protocol.windup_rad`).
     """
 
     seed: int = 0
@@ -132,10 +163,13 @@ class ProtocolSettings:
     motion_amplitude: tuple[float, float, float] = (0.05, 0.08, 0.08)
     motion_period_s: float = 2.5
     image_nuisance: ImagingNuisance = ImagingNuisance()
+    lab_conditions: LabConditions = LabConditions()
 
     def __post_init__(self) -> None:
         if isinstance(self.image_nuisance, dict):
             object.__setattr__(self, "image_nuisance", ImagingNuisance(**self.image_nuisance))
+        if isinstance(self.lab_conditions, dict):
+            object.__setattr__(self, "lab_conditions", LabConditions(**self.lab_conditions))
         for name in ("planes", "configurations", "frames_per_configuration"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)}")
@@ -153,6 +187,12 @@ class ProtocolSettings:
             raise ValueError(f"rig must be 'pinhole' or 'orthographic', got {self.rig!r}")
         if self.images and self.rig != "pinhole":
             raise ValueError("images need the pinhole rig (cameras); use --no-images for planes")
+        lab = self.lab_conditions
+        if self.images and (lab.outlier_probability > 0 or lab.dropout_probability > 0):
+            raise ValueError(
+                "wrong and missing markers are simulated for markers only (--no-images): with"
+                " images the segmentation makes its own"
+            )
         levels = self.image_noise_levels_gray if self.images else self.noise_levels_mm
         if not levels or any(not (math.isfinite(x) and x >= 0) for x in levels):
             raise ValueError(f"noise levels must be non-empty and >= 0, got {levels}")
@@ -201,9 +241,10 @@ class Configuration:
     q0: Array  # (3,) joint values about which the joints move (rad, mm, mm)
     delta_L_rad: float
     deflection_mm: float
-    joint_offset: Array  # (3,) in-plane deflection through the joints (rad, mm, mm)
+    joint_offset: Array  # (3,) deflection and contact deviation of the joints (rad, mm, mm)
     noise_level: float
     start_ns: int  # time of the first frame
+    windup_start_rad: float = 0.0  # wound-up torsion (tip - base turn) at start_ns
 
 
 @dataclass(frozen=True)
@@ -249,11 +290,11 @@ class Protocol:
     def truth(self, time_ns: Array) -> tuple[Array, Array]:
         """True delta_L (rad) and the deflection joint offset (rad, mm, mm) at the given times.
 
-        Constant within a configuration. A move between configurations goes as an
-        experimenter would make it: the contact is released (first fifth of the move), the
-        torsion turns the short way to the next plane's (first two fifths), the catheter
-        moves free, and the contact is made again at the next configuration (last fifth);
-        each change along a smoothstep.
+        Constant within a configuration, but for the wind-up (:meth:`windup_rad`). A move
+        between configurations goes as an experimenter would make it: the contact is released
+        (first fifth of the move), the torsion turns the short way to the next plane's (first
+        two fifths), the catheter moves free, and the contact is made again at the next
+        configuration (last fifth); each change along a smoothstep.
         """
         t_ns = np.asarray(time_ns, dtype=np.int64)
         k, inside = self.in_configuration(t_ns)
@@ -277,7 +318,34 @@ class Protocol:
             out_offset[moving] = (1 - ramp(0.0, 0.2))[:, None] * offsets[kk] + ramp(0.8, 1.0)[
                 :, None
             ] * offsets[kk + 1]
+        if self.settings.lab_conditions.windup_play_rad > 0:
+            out_delta = wrap_angle(out_delta + self.windup_rad(t_ns))
         return out_delta, out_offset
+
+    def windup_rad(self, time_ns: Array) -> Array:
+        """Torsion wound up by the base's turns, rad, added to the plane's delta_L.
+
+        The tip follows the base only once the base has turned ``windup_play_rad`` beyond it
+        (:func:`~replay.simulation.simulator.torsion_windup`, a play operator run over the
+        joint samples from the session's start), so the wound-up part stays within +/- the
+        play and lags every reversal of ``q_r``. Zero without play.
+        """
+        t_ns = np.asarray(time_ns, dtype=np.int64)
+        play = self.settings.lab_conditions.windup_play_rad
+        out = np.zeros(t_ns.shape)
+        if play == 0:
+            return out
+        period = self.settings.joint_period_ns
+        k, _ = self.in_configuration(t_ns)
+        for c in np.unique(k):
+            # From the state stored at the configuration's start, over its joint samples.
+            here = k == c
+            cfg = self.configurations[c]
+            n = (t_ns[here] - cfg.start_ns) // period
+            q_r = self.joints(cfg.start_ns + period * np.arange(n.max() + 1))[0][:, 0]
+            start = q_r[0] + cfg.windup_start_rad  # the tip's turn: play-operator state
+            out[here] = torsion_windup(np.concatenate([[start], q_r]), play)[1:][n]
+        return out
 
     def joints(self, time_ns: Array) -> tuple[Array, Array]:
         """Commanded joint values and rates at the given times (rad, mm; rad/s, mm/s)."""
@@ -318,7 +386,6 @@ class Protocol:
 
 def _scene(settings: ProtocolSettings, catheter: Catheter) -> Scene:
     if settings.rig == "pinhole":
-
         rig: Rig = default_render_rig()
     else:
         rig = default_orthographic_rig()
@@ -365,10 +432,24 @@ def _overlaps_in_images(scene: Scene, q: Array, delta_L: float, clearance_px: fl
 
 
 def build_protocol(settings: ProtocolSettings, scene: Scene) -> Protocol:
-    """Planes, torsions, configurations, noise and deflection levels of a session (seeded)."""
+    """Planes, torsions, configurations, noise and deflection levels of a session (seeded).
+
+    ``scene`` holds the model; with a model error the configurations are chosen so that the
+    true catheter (:func:`~replay.simulation.simulator.truth_catheter`) is bent enough and
+    inside the images.
+    """
     s = settings
+    lab = s.lab_conditions
     catheter = scene.catheter
+    truth_scene = dataclasses.replace(
+        scene, catheter=truth_catheter(catheter, lab.model_scale_error)
+    )
     rng = np.random.default_rng([s.seed, 1])
+    contact = contact_joint_offsets(
+        np.random.default_rng([s.seed, 16]), s.configurations, lab.contact_joint_std_mm
+    )
+    # The in-image checks hold wherever the wind-up can turn the plane.
+    windups = (-lab.windup_play_rad, 0.0, lab.windup_play_rad) if lab.windup_play_rad else (0.0,)
     targets = wrap_angle(2 * np.pi * np.arange(s.planes) / s.planes)
     lo, hi = np.radians(s.torsion_range_deg)
     delta_L = rng.uniform(lo, hi, s.planes)
@@ -396,19 +477,26 @@ def build_protocol(settings: ProtocolSettings, scene: Scene) -> Protocol:
             q_d = rng.uniform(*s.q_d_range_mm)
             q0 = np.array([q_r, q_p, q_d])
             try:
-                offset = in_plane_joint_offset(catheter, q0, deflection)
+                offset = in_plane_joint_offset(truth_scene.catheter, q0, deflection) + contact[c]
             except ValueError:
                 continue
             # Bent enough as the model sees it (q) and as it is (q + offset), over the motion.
             extremes = [q0 + sign * amplitude for sign in (-1.0, 0.0, 1.0)]
-            seen = np.array(extremes + [q + offset for q in extremes])
-            radius = np.hypot(*catheter.shape_vectors(seen).c_tip_mm[..., :2].T)
+            radius = np.concatenate(
+                [
+                    np.hypot(*model.shape_vectors(np.array(qs)).c_tip_mm[..., :2].T)
+                    for model, qs in (
+                        (catheter, extremes),
+                        (truth_scene.catheter, [q + offset for q in extremes]),
+                    )
+                ]
+            )
             if radius.min() < s.min_radius_mm:
                 continue
             extremes = [q0 + offset + sign * amplitude for sign in (-1.0, 1.0)]
-            poses = [q0 + offset, *extremes]
-            if all(_inside_images(scene, q, float(delta_L[p])) for q in poses) and not any(
-                _overlaps_in_images(scene, q, float(delta_L[p])) for q in poses
+            poses = [(q, float(delta_L[p]) + w) for q in [q0 + offset, *extremes] for w in windups]
+            if all(_inside_images(truth_scene, q, d) for q, d in poses) and not any(
+                _overlaps_in_images(truth_scene, q, d) for q, d in poses
             ):
                 break
         else:
@@ -428,7 +516,17 @@ def build_protocol(settings: ProtocolSettings, scene: Scene) -> Protocol:
                 start_ns=c * step_ns,
             )
         )
-    return Protocol(s, targets, delta_L, tuple(configurations))
+    protocol = Protocol(s, targets, delta_L, tuple(configurations))
+    if not lab.windup_play_rad:
+        return protocol
+    # The wind-up state at each configuration's start, from one pass over the session.
+    t_ns = np.arange(0, protocol.end_ns, s.joint_period_ns, dtype=np.int64)
+    windup = torsion_windup(protocol.joints(t_ns)[0][:, 0], lab.windup_play_rad)
+    starts = [
+        dataclasses.replace(c, windup_start_rad=float(windup[c.start_ns // s.joint_period_ns]))
+        for c in configurations
+    ]
+    return dataclasses.replace(protocol, configurations=tuple(starts))
 
 
 # ----------------------------------------------------------------------- one configuration
@@ -441,9 +539,6 @@ class _Job:
 
 
 def _catheter_from_text(text: str) -> Catheter:
-    import tomllib
-
-
     return catheter_from_dict(tomllib.loads(text), "model")
 
 
@@ -457,7 +552,9 @@ def configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
 def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
     s, cfg, protocol = job.settings, job.configuration, job.protocol
     catheter = _catheter_from_text(job.model_toml)
-    scene = _scene(s, catheter)
+    # The frames show the true catheter; the segmentation, like the recording, has the model.
+    truth = truth_catheter(catheter, s.lab_conditions.model_scale_error)
+    scene = _scene(s, truth)
     rng = np.random.default_rng([s.seed, 2, cfg.index])
     t_ns = protocol.frame_times_ns(cfg.index)
     q, q_dot = protocol.joints(t_ns)
@@ -477,19 +574,20 @@ def _configuration_frames(job: _Job) -> list[tuple[Frame, FrameLabels, tuple]]:
     ]
     if not s.images:
         trajectory = JointTrajectory(t_ns / 1e9, q, q_dot)
-        sigma = image_sigma(scene.rig.views[0], cfg.noise_level)
+        view, lab = scene.rig.views[0], s.lab_conditions
+        lab = dataclasses.replace(lab, outlier_magnitude=image_sigma(view, lab.outlier_magnitude))
         frames = simulate_frames(
             scene,
             trajectory,
             delta_L,
-            NoiseSettings(sigma=sigma),
+            lab.noise(image_sigma(view, cfg.noise_level)),
             rng,
             model_joint_offset=offset,
         )
         return [(f, label, (None, None)) for f, label in zip(frames, labels, strict=True)]
 
     renderer = Renderer(
-        catheter,
+        truth,
         scene.rig,
         scene.R_w_b,
         scene.o_b_w_mm,
@@ -594,6 +692,10 @@ def simulate_protocol(
         "duration_s": protocol.end_ns / 1e9,
         "delta_1_targets_rad": protocol.delta_1_targets_rad.tolist(),
         "delta_L_per_plane_rad": protocol.delta_L_rad.tolist(),
+        "lab_conditions_units": LAB_CONDITIONS_UNITS,
+        "joint_offset_per_configuration": [
+            c.joint_offset.tolist() for c in protocol.configurations
+        ],
     }
     jobs = [_Job(settings, model_text, cfg, protocol) for cfg in protocol.configurations]
     unit = "px" if scene.rig.kind == "pinhole" else "mm"

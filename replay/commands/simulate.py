@@ -3,9 +3,25 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from replay.commands.nuisance import nuisance_from_args
 from replay.protocol import ProtocolSettings, simulate_protocol
+from replay.simulation.simulator import LabConditions
+
+
+def lab_conditions_from_args(args: argparse.Namespace) -> LabConditions:
+    """The lab conditions of ``cathtrack simulate``'s options (replay.cli)."""
+    options = {
+        "model_scale_error": args.model_scale_error,
+        "contact_joint_std_mm": args.contact_joint_std_mm,
+        "outlier_probability": args.outlier_rate,
+        "dropout_probability": args.dropout_rate,
+        "windup_play_rad": math.radians(args.windup_play_deg),
+    }
+    if args.outlier_size_mm is not None:
+        options["outlier_magnitude"] = args.outlier_size_mm
+    return LabConditions(**options)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -20,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
         "rig": args.rig,
         "transition_frames": not args.no_transition_frames,
         "image_nuisance": nuisance_from_args(args),
+        "lab_conditions": lab_conditions_from_args(args),
     }
     for option, field in (
         ("noise_levels_mm", "noise_levels_mm"),

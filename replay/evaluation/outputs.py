@@ -56,6 +56,8 @@ CSV_COLUMNS = (
     "nees_band_high",
     "consistent",
     "mean_nis_per_dof",
+    "confidently_wrong_frames",
+    "confidently_wrong_configurations",
 )
 
 

@@ -1,9 +1,12 @@
 """Accuracy tables of a replay: statistics per group of frames, the paper's checks, markdown.
 
 Every table is a list of rows (long format, degrees): ``overall``, per bending ``plane``,
-against tip ``deflection``, against segmentation ``noise``, per ``configuration``, and the
-``consistency`` of the filters' uncertainty. Each row is one method (or the bound,
-:data:`BOUND_NAME`) over one group of the scored frames.
+against tip ``deflection``, against segmentation ``noise``, per ``configuration``, the
+``consistency`` of the filters' uncertainty, and ``robustness``: per method, whether its
+uncertainty can be trusted (:func:`replay.robustness.robustness_metrics`: 2-sigma coverage,
+mean NEES, and the frames and configurations where it is confidently wrong, an error above
+30 degrees with a std below 10). Each row is one method (or the bound, :data:`BOUND_NAME`)
+over one group of the scored frames.
 
 Groups. A label with at most :data:`LEVELS_MAX` distinct values over the scored frames (the
 protocol's planes and configurations, its three noise and deflection levels) gets one group per
@@ -33,12 +36,21 @@ import numpy as np
 from scipy.stats import chi2
 
 from replay.evaluation.run import MethodResult, Replay
+from replay.robustness import CONFIDENT_DEG, WRONG_DEG, robustness_metrics
 
 Array = np.ndarray
 
 BOUND_NAME = "crb-tip"
 """Name of the per-frame Cramer-Rao bound of the tip in the tables."""
-TABLES = ("overall", "plane", "deflection", "noise", "configuration", "consistency")
+TABLES = (
+    "overall",
+    "plane",
+    "deflection",
+    "noise",
+    "configuration",
+    "consistency",
+    "robustness",
+)
 
 LEVELS_MAX = 8
 """A label with at most this many distinct values is grouped by value; one with more is a
@@ -213,7 +225,32 @@ def replay_tables(replay: Replay) -> dict[str, list[dict]]:
     for result in replay.results.values():
         if result.reports_nis:
             tables["consistency"].append(_consistency(result, known, scored))
+    if known.any():
+        configuration = replay.label("configuration")
+        labelled = any(c is not None for c in configuration)
+        for result in replay.results.values():
+            tables["robustness"].append(
+                _robustness(result, configuration if labelled else None, scored)
+            )
     return tables
+
+
+def _robustness(result: MethodResult, configuration: Array | None, scored: Array) -> dict:
+    """One method's row of the robustness table over the scored frames."""
+    m = robustness_metrics(result.name, result.errors_rad, result.std_rad, configuration, scored)
+    return {
+        "table": "robustness",
+        "group": "all",
+        "method": result.name,
+        "frames": m.frames,
+        "valid": m.valid,
+        "rms_deg": m.rms_deg,
+        "max_deg": m.max_deg,
+        "within_2sigma": m.coverage_2sigma,
+        "mean_nees": m.mean_nees,
+        "confidently_wrong_frames": m.confidently_wrong_frames,
+        "confidently_wrong_configurations": m.confidently_wrong_configurations,
+    }
 
 
 def _consistency(result: MethodResult, known: Array, scored: Array) -> dict:
@@ -408,6 +445,9 @@ def replay_markdown(replay: Replay, tables: dict[str, list[dict]]) -> str:
     for check in paper_checks(tables):
         mark = {True: "holds", False: "DOES NOT HOLD", None: "not checked"}[check.holds]
         lines.append(f"- {check.claim}: **{mark}** ({check.detail})")
+    if tables["robustness"]:
+        lines += ["", "## Can the uncertainty be trusted?", ""]
+        lines += robustness_markdown(tables["robustness"])
     if tables["plane"]:
         lines += ["", "## Per bending plane (RMS / max, deg)", ""]
         lines += _pivot(
@@ -466,6 +506,33 @@ def replay_markdown(replay: Replay, tables: dict[str, list[dict]]) -> str:
     for step, seconds in replay.timings_s.items():
         lines.append(f"- {step}: {seconds:.2f} s ({1e6 * seconds / n:.0f} us per frame)")
     return "\n".join(lines) + "\n"
+
+
+ROBUSTNESS_HEADER = (
+    "| method | frames | RMS (deg) | max (deg) | within 2 sigma | mean NEES"
+    " | confidently wrong frames | confidently wrong configurations |"
+)
+
+
+def robustness_markdown(rows: Sequence[dict]) -> list[str]:
+    """The robustness table (rows of :func:`replay_tables`' ``robustness``) as markdown lines,
+    with a note on how to read it."""
+    lines = [ROBUSTNESS_HEADER, "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        lines.append(
+            f"| {row['method']} | {row['frames']} | {format_cell(row['rms_deg'])} |"
+            f" {format_cell(row['max_deg'])} | {_percent(row['within_2sigma'], 1)} |"
+            f" {format_cell(row['mean_nees'])} | {row['confidently_wrong_frames']} |"
+            f" {row['confidently_wrong_configurations']} |"
+        )
+    lines += [
+        "",
+        f"Confidently wrong: an error above {WRONG_DEG:g} deg while the reported std is below"
+        f" {CONFIDENT_DEG:g} deg (the target is 0 configurations). An honest std covers the"
+        " truth within 2 sigma in about 95% of frames, with a mean NEES (error^2 / std^2) near"
+        " 1; more coverage and a smaller NEES mean a std wider than the error.",
+    ]
+    return lines
 
 
 def markdown_table(results: dict[str, MethodResult], bound_rms_deg: float | None = None) -> str:

@@ -8,10 +8,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 import multiprocessing
-import os
 import queue
 import signal
 import threading
@@ -152,6 +150,10 @@ class RenderedSource(PacedSource):
 
 
 # ------------------------------------------------------------------------ simulated cameras
+RENDER_RATE_MARGIN = 0.7
+"""Share of the render rate measured before a session counted on during it."""
+
+
 def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max_ahead, stop):
     """The render process: every pair in order, at most ``max_ahead`` ahead of the release.
 
@@ -159,10 +161,6 @@ def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max
     pairs the cameras have released; a failure goes to ``pairs`` as its message.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
-    with contextlib.suppress(OSError, AttributeError):
-        # Below the loop's priority: ahead of time, the renderer can wait for a core; the
-        # loop should not (real cameras cost the loop's machine nothing).
-        os.nice(10)
     try:
         rng = np.random.default_rng(seed)
         for k in range(len(q)):
@@ -266,14 +264,16 @@ class SimulatedCameras:
 
         At a render rate below the frame rate, the pairs still to render outrun the session
         unless a share ``1 - rate / frame_rate`` of them is ready first (plus a margin of a
-        few pairs); capped at ``max_ahead``. Returns the pairs ready.
+        few pairs); capped at ``max_ahead``. The rate is taken at :data:`RENDER_RATE_MARGIN`
+        of the one measured so far: once the session runs, the loop needs its share of the
+        machine too. Returns the pairs ready.
         """
         total = self.times_s.size
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and self._process.is_alive():
             n = self.rendered
             if n >= min(total, 4):
-                rate_hz = 1e3 / self.render_ms
+                rate_hz = RENDER_RATE_MARGIN * 1e3 / self.render_ms
                 lead = total * max(0.0, 1.0 - rate_hz / frame_rate_hz) + 4
                 if n >= min(total, self.max_ahead, math.ceil(lead)):
                     return n

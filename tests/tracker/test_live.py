@@ -401,7 +401,9 @@ def test_video_files_through_segmentation_track_the_truth(rendered, tmp_path, co
     with VideoSource([str(front), str(side)]) as video:
         items = list(video)
     assert len(items) == len(pairs) and isinstance(items[0], ImageSet)
-    assert not video.time_is_monotonic
+    assert not video.time_is_monotonic and not video.live  # every frame, as fast as it goes
+    with VideoSource([str(front), str(side)], realtime=True) as paced:
+        assert paced.live  # at its frame rate, like a camera: the loop takes the newest
     np.testing.assert_array_equal(items[3].images[1], pairs[3][1])  # lossless, grayscale
     np.testing.assert_allclose([i.time_s for i in items], [f.time_s for f in session.frames])
     with VideoSource([str(front), str(side)]) as video, JointReceiver(
@@ -665,6 +667,32 @@ def test_a_source_faster_than_the_loop_gets_only_its_newest_pair_processed(noisy
     assert summary.frames_superseded == summary.frames_dropped == 4
     assert summary.frames_received == summary.frames_processed == 2
     assert any("only the newest is processed" in line for line in reports)
+
+
+def test_a_live_source_that_fails_in_its_thread_fails_the_run_after_the_clean_up(
+    noisy_session,
+):
+    class Broken:
+        live = True
+        closed = False
+
+        def __iter__(self):
+            yield noisy_session.frames[0]
+            raise OSError("camera unplugged")
+
+        def close(self):
+            self.closed = True
+
+    source, memory = Broken(), MemorySink()
+    with pytest.raises(OSError, match="camera unplugged"):
+        run_live(
+            source,
+            reconstructor_of(noisy_session),
+            make_estimator("ukf", noisy_session.scene.catheter),
+            [memory],
+            handle_signals=False,
+        )
+    assert memory.closed and source.closed
 
 
 def test_one_frame_stamped_far_ahead_does_not_stop_the_stream(noisy_session, controller):

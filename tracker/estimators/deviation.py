@@ -83,22 +83,30 @@ class ShapeExpansion:
     def points(self, q: Array) -> Array:
         """Model vectors of the tip and the markers at one q (3,): (P, 3), mm."""
         shape = self.catheter.shape_vectors(q)
-        return np.concatenate([shape.c_tip_mm[None], shape.c_markers_mm])
+        markers = shape.c_markers_mm
+        out = np.empty((markers.shape[0] + 1, 3))
+        out[0] = shape.c_tip_mm
+        out[1:] = markers
+        return out
 
     def __call__(self, q: Array) -> tuple[Array, Array, Array]:
         """c (B, P, 3), J (B, P, 3, 2) and K (B, P, 3, 3) at joint values q (B, 3)."""
         q = np.asarray(q, dtype=float)
+        if q.shape[0] == 1:
+            # One configuration in Python floats (round() rounds half to even, as np.rint).
+            q_p, q_d = float(q[0, 1]), float(q[0, 2])
+            key = (round(q_p / self.GRID_MM), round(q_d / self.GRID_MM))
+            _, J, K = self.node(key)
+            dq = np.array([q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM])
+            c = self.points(q[0])[None]
+            return c, deviation_jacobian(J, K, dq)[None], K[None]
         keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
         delta = q[:, 1:] - keys * self.GRID_MM
-        if q.shape[0] == 1:
-            _, J, K = (a[None] for a in self.node((int(keys[0, 0]), int(keys[0, 1]))))
-            c = self.points(q[0])[None]
-        else:
-            distinct, index = np.unique(keys, axis=0, return_inverse=True)
-            nodes = [self.node((int(a), int(b))) for a, b in distinct]
-            J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in (1, 2))
-            rows, where = np.unique(q, axis=0, return_inverse=True)
-            c = np.array([self.points(row) for row in rows])[where.ravel()]
+        distinct, index = np.unique(keys, axis=0, return_inverse=True)
+        nodes = [self.node((int(a), int(b))) for a, b in distinct]
+        J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in (1, 2))
+        rows, where = np.unique(q, axis=0, return_inverse=True)
+        c = np.array([self.points(row) for row in rows])[where.ravel()]
         return c, deviation_jacobian(J, K, delta[:, None]), K
 
 

@@ -80,8 +80,11 @@ def wrap(angle: Array) -> Array:
     return (angle + math.pi) % _TWO_PI - math.pi
 
 
-def _is_every_trial(b: Array, n: int) -> bool:
-    """Whether the trial indices b are 0, 1, ..., n - 1 (then no gather is needed)."""
+def is_every_trial(b: Array | slice, n: int) -> bool:
+    """Whether the trial indices b are 0, 1, ..., n - 1 (then no gather is needed; a slice
+    stands for every trial)."""
+    if isinstance(b, slice):
+        return True
     return b.size == n and (n == 1 or bool(b[-1] == n - 1 and np.all(np.diff(b) == 1)))
 
 
@@ -195,13 +198,14 @@ class FrameGroups:
         ``deviation``: index of dq = (dq_p, dq_d) in the state; ``rate``: index of the torsion
         rate, which adds ``rate e_z x c_tip`` to the velocity group.
         """
-        whole = _is_every_trial(b, self.y.shape[0])
+        whole = is_every_trial(b, self.y.shape[0])
         c = self.c if whole else self.c[b]
         r, S = sigmas.shape[:2]
         if deviation is not None:
             basis = expansion_basis(sigmas[..., deviation : deviation + 2])
-            shape = c[:, None] + np.einsum(
-                "rgij,rsj->rsgi", self.JK if whole else self.JK[b], basis
+            JK = (self.JK if whole else self.JK[b]).reshape(r, -1, 5)
+            shape = c[:, None] + (basis @ np.swapaxes(JK, -1, -2)).reshape(
+                (r, S) + c.shape[1:]
             )
         else:
             shape = np.broadcast_to(c[:, None], (r, S) + c.shape[1:])

@@ -58,6 +58,7 @@ from tracker.estimators.deviation import deviation_decay, deviation_prior, quadr
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
+    is_every_trial,
     fit_frame,
     group_coefficients,
     jump_probability,
@@ -378,7 +379,10 @@ class FilterBank:
             L, ok = cholesky(A if finite.all() else np.where(finite[:, None, None], A, np.eye(n)))
             ok &= finite
             U = np.swapaxes(L, -1, -2)
-        sigmas = np.concatenate([x[:, None], x[:, None] + U, x[:, None] - U], axis=1)
+        sigmas = np.empty((x.shape[0], 2 * n + 1, n))
+        sigmas[:, 0] = x
+        sigmas[:, 1 : n + 1] = x[:, None] + U
+        sigmas[:, n + 1 :] = x[:, None] - U
         sigmas[..., 0] = wrap(sigmas[..., 0])
         return sigmas, ok
 
@@ -391,23 +395,28 @@ class FilterBank:
         spread stays below pi by the std cap): that is what is computed.
         """
         s, n = self.settings, self.n
-        b, h = np.nonzero(self.active & running[:, None])
+        b, h, rows = self._marked(self.active & running[:, None])
         if b.size == 0:
             return
-        x, P = self.x[b, h], self.P[b, h]
-        P[:, 0, 0] += Q[b]
+        if rows is b:
+            x, P = self.x[b, h], self.P[b, h]
+        else:
+            x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
+        P[:, 0, 0] += Q[rows]
         if self.deviation is not None:
             k = self.deviation
-            a = deviation_decay(moved[b], s.deviation_length_mm, dt[b], s.deviation_rate_per_s)
+            a = deviation_decay(
+                moved[rows], s.deviation_length_mm, dt[rows], s.deviation_rate_per_s
+            )
             scale = np.ones((b.size, n))
             scale[:, k : k + 2] = a[:, None]
             x = x * scale
             P = P * scale[:, :, None] * scale[:, None, :]
-            fresh = (1 - a * a)[:, None] * self.deviation_prior(self.q[b])
+            fresh = (1 - a * a)[:, None] * self.deviation_prior(self.q[rows])
             P[:, k, k] += fresh[:, 0]
             P[:, k + 1, k + 1] += fresh[:, 1]
         if self.rate is not None:
-            r, step = self.rate, dt[b]
+            r, step = self.rate, dt[rows]
             qa = s.rate_process_noise_rad2_s3
             x[:, 0] += step * x[:, r]
             P[:, 0, :] += step[:, None] * P[:, r, :]
@@ -431,7 +440,18 @@ class FilterBank:
             f = np.sqrt(self.max_variance / P[over, 0, 0])
             P[over, 0, :] *= f[:, None]
             P[over, :, 0] *= f[:, None]
-        self.x[b, h], self.P[b, h] = x, P
+        if rows is b:
+            self.x[b, h], self.P[b, h] = x, P
+        else:
+            self.x[:, 0], self.P[:, 0] = x, P
+
+    def _marked(self, mask: Array) -> tuple[Array, Array, Array | slice]:
+        """The hypotheses marked in ``mask`` (B, H) as indices (b, h), and the trial rows to
+        read per hypothesis: ``slice(None)`` when they are the first slot of every trial in
+        order (a bank of one's usual case: views instead of gathers), else b."""
+        b, h = np.nonzero(mask)
+        every = is_every_trial(b, self.B) and not h.any()
+        return b, h, slice(None) if every else b
 
     def _repaired(self, x: Array, P: Array) -> tuple[Array, Array]:
         """The last good state with a re-initialised (diagonal, capped) covariance."""
@@ -447,7 +467,7 @@ class FilterBank:
     def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:
         s = self.settings
         B = self.B
-        noise = frame.noise(np.arange(B))
+        noise = frame.noise(slice(None))
         check_measurement_covariance(noise, frame.present)
         three_d = isinstance(frame, FrameGroups)
         # Trials without a usable group in this frame only predict.
@@ -478,16 +498,21 @@ class FilterBank:
             # The report follows each trial's leading hypothesis.
             lead = self.leading()
             mine = update.h == lead[update.b]
-            row = np.full(B, -1)
-            row[update.b[mine]] = np.flatnonzero(mine)
-            touched = running & ~all_wide & (row >= 0)
-            row = np.maximum(row, 0)
+            if is_every_trial(update.b, B) and mine.all():
+                # Row i of the update is trial i's leading hypothesis: no gathers.
+                row = slice(None)
+                touched = running & ~all_wide
+            else:
+                row = np.full(B, -1)
+                row[update.b[mine]] = np.flatnonzero(mine)
+                touched = running & ~all_wide & (row >= 0)
+                row = np.maximum(row, 0)
             st = np.where(touched, update.status[row], 0)
             flags |= st
             out.nis = np.where(touched, update.nis[row], np.nan)
             out.nis_dof = np.where(touched & np.isfinite(out.nis), update.dof[row], 0)
             if B == 1 and touched[0]:
-                out.innovation[0] = update.innovation[row[0]]
+                out.innovation[0] = update.innovation[0 if isinstance(row, slice) else row[0]]
             self.rejected += np.where(touched, update.rejected[row], 0)
             held = (st & _F["HELD"]) != 0
             all_rejected = touched & held & ((st & _F["OUTLIER_REJECTED"]) != 0)
@@ -667,21 +692,24 @@ class FilterBank:
         """
         s = self.settings
         B = self.B
-        b, h = np.nonzero(updating)
+        b, h, rows = self._marked(updating)
         r = b.size
         G, d, n = frame.present.shape[1], frame.dim, self.n
         m = G * d
-        x, P = self.x[b, h], self.P[b, h]
+        if rows is b:
+            x, P = self.x[b, h], self.P[b, h]
+        else:
+            x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
         sigmas, ok_sigma = self._sigma_points(x, P)
         about = x[:, 0]
-        hs = frame.predict(b, sigmas, self.rate, self.deviation, about).reshape(r, -1, m)
+        hs = frame.predict(rows, sigmas, self.rate, self.deviation, about).reshape(r, -1, m)
         zp = self.Wm @ hs
         D = hs - zp[:, None]
-        rho = frame.measured(b, about).reshape(r, m) - zp
-        present = frame.present[b]
-        noise = frame.noise(b) * scale[b, None, None, None]
+        rho = frame.measured(rows, about).reshape(r, m) - zp
+        present = frame.present[rows]
+        noise = frame.noise(rows) * scale[rows, None, None, None]
         if M is not None:
-            noise += M[b]
+            noise += M[rows]
         DW = D * self.Wc[:, None]
         S = np.swapaxes(DW, 1, 2) @ D
         blocks = _block_index(G, d)
@@ -690,7 +718,7 @@ class FilterBank:
         # Per group: its block of S, its squared residual, the gate.
         S_g = flat[:, blocks].reshape(r, G, d, d)
         rho_g = rho.reshape(r, G, d)
-        d2 = np.einsum("rgi,rgi->rg", rho_g, (np.linalg.inv(S_g) @ rho_g[..., None])[..., 0])
+        d2 = (rho_g * np.linalg.solve(S_g, rho_g[..., None])[..., 0]).sum(-1)
         threshold = outlier_threshold(d, s.outlier_probability, s.outlier_scale)
         inlier = present & (d2 <= threshold)
         outlier = present & ~inlier
@@ -706,9 +734,11 @@ class FilterBank:
         dx = sigmas - x[:, None]
         dx[..., 0] = wrap(dx[..., 0])
         Pxz = np.swapaxes(dx, 1, 2) @ DW
-        rhs = np.concatenate([np.swapaxes(Pxz, -1, -2), rho[..., None]], -1)
+        rhs = np.empty((r, m, n + 1))
+        rhs[..., :n] = np.swapaxes(Pxz, -1, -2)
+        rhs[..., n] = rho
         solved, logdet_S, ok_S = _spd_solve(S, rhs)
-        nis = np.einsum("rm,rm->r", rho, solved[..., n])
+        nis = (rho * solved[..., n]).sum(-1)
         x_post = x + (Pxz @ solved[..., n, None])[..., 0]
         x_post[:, 0] = wrap(x_post[:, 0])
         P_post = P - Pxz @ solved[..., :n]

@@ -45,15 +45,16 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
-from tracker.io.udp import JointReceiver, StreamCounts
+from tracker.io.udp import JointReceiver
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
+from tracker.live.summary import LatencyRecorder, LiveSummary
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag, Frame, Observation
 
@@ -69,133 +70,6 @@ REBASE_AFTER = 5
 """Consistent frames rejected for their time in a row that make a new time base."""
 ROI_POINTS = 12
 """Points along the predicted catheter that outline the segmentation's region of interest."""
-
-
-# ---------------------------------------------------------------------------- bookkeeping
-class LatencyRecorder:
-    """The last ``capacity`` latencies (a ring), and their percentiles."""
-
-    def __init__(self, capacity: int = 100_000) -> None:
-        self._values = np.empty(int(capacity))
-        self._count = 0
-
-    def add(self, latency_s: float) -> None:
-        self._values[self._count % self._values.size] = latency_s
-        self._count += 1
-
-    def values(self) -> Array:
-        return self._values[: min(self._count, self._values.size)].copy()
-
-    def percentiles_ms(self) -> dict[str, float]:
-        """p50, p99 and max in ms (NaN when empty)."""
-        v = self.values()
-        if v.size == 0:
-            return {"p50": math.nan, "p99": math.nan, "max": math.nan}
-        p50, p99 = np.percentile(v, [50, 99])
-        return {"p50": 1e3 * p50, "p99": 1e3 * p99, "max": 1e3 * float(v.max())}
-
-
-@dataclass
-class LiveSummary:
-    """What a run did (counts of frames and datagrams, latencies, failures)."""
-
-    frames_received: int = 0  # taken from the source by the loop
-    frames_processed: int = 0
-    frames_superseded: int = 0  # live source: replaced by a newer frame before the loop was free
-    frames_out_of_order: int = 0
-    frames_duplicate: int = 0
-    frames_bad_time: dict[str, int] = field(default_factory=dict)  # by reason
-    time_rebases: int = 0
-    frames_rejected: int = 0  # could not be segmented or reconstructed
-    frames_stale_joints: int = 0
-    frames_no_joints: int = 0
-    frames_clamped_joints: int = 0
-    frames_extrapolated_joints: int = 0
-    frames_valid: int = 0  # with a finite estimate
-    estimator_errors: int = 0
-    joints: StreamCounts | None = None
-    markers: StreamCounts | None = None
-    sink_failures: dict[str, str] = field(default_factory=dict)
-    sink_dropped: dict[str, int] = field(default_factory=dict)  # queued sinks behind
-    sink_stalls: dict[str, int] = field(default_factory=dict)
-    age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
-    latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
-    cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
-    duration_s: float = 0.0
-    stop_reason: str = ""
-
-    @property
-    def frames_dropped(self) -> int:
-        """Frames never processed: superseded, out of order, duplicate, bad time, unusable."""
-        return (
-            self.frames_superseded
-            + self.frames_out_of_order
-            + self.frames_duplicate
-            + sum(self.frames_bad_time.values())
-            + self.frames_rejected
-        )
-
-    @property
-    def frames_without_joints(self) -> int:
-        """Frames processed predict-only for lack of joint values at their time."""
-        return (
-            self.frames_stale_joints
-            + self.frames_no_joints
-            + self.frames_clamped_joints
-            + self.frames_extrapolated_joints
-        )
-
-    @property
-    def interrupted(self) -> bool:
-        return self.stop_reason == "interrupted"
-
-    def lines(self) -> list[str]:
-        """The summary as a few human-readable lines."""
-        bad_time = "".join(f", {n} {reason}" for reason, n in sorted(self.frames_bad_time.items()))
-        out = [
-            f"live loop ended ({self.stop_reason}) after {self.duration_s:.1f} s:"
-            f" {self.frames_processed} of {self.frames_received} frames processed,"
-            f" {self.frames_valid} with an estimate",
-            f"  dropped: {self.frames_superseded} replaced by a newer frame while the loop was"
-            f" busy, {self.frames_out_of_order} out of order, {self.frames_duplicate}"
-            f" duplicate{bad_time}, {self.frames_rejected} unusable",
-            f"  without joints (predict only, not valid): {self.frames_without_joints} frames"
-            f" ({self.frames_stale_joints} stale, {self.frames_no_joints} before the first"
-            f" sample, {self.frames_clamped_joints} before the history,"
-            f" {self.frames_extrapolated_joints} past the newest sample)",
-        ]
-        if self.time_rebases:
-            out.append(f"  new time base: {self.time_rebases} (the estimator started again)")
-        for label, counts in (("joint", self.joints), ("marker", self.markers)):
-            if counts is not None:
-                bad = ", ".join(f"{k} {v}" for k, v in sorted(counts.malformed.items())) or "none"
-                out.append(
-                    f"  {label} datagrams: {counts.received} received, {counts.accepted} used,"
-                    f" {counts.stale} stale, {counts.duplicate} duplicate, malformed: {bad}"
-                    + (f", {counts.restarts} sender restarts" if counts.restarts else "")
-                )
-        if self.estimator_errors:
-            out.append(f"  estimator errors: {self.estimator_errors}")
-        lat, cyc, age = self.latency_ms, self.cycle_ms, self.age_ms
-        if lat:
-            out.append(
-                f"  latency image -> estimate: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms,"
-                f" max {lat['max']:.2f} ms; -> loop done: p50 {cyc['p50']:.2f} ms,"
-                f" p99 {cyc['p99']:.2f} ms; age of a frame when taken: p50 {age['p50']:.2f} ms,"
-                f" max {age['max']:.2f} ms"
-            )
-        for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
-            dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
-            if dropped or stalls:
-                out.append(
-                    f"  sink {name} fell behind: {dropped} frames dropped, {stalls} waits"
-                )
-        for name, failure in self.sink_failures.items():
-            out.append(f"  sink {name} disabled: {failure}")
-        return out
-
-    def __str__(self) -> str:
-        return "\n".join(self.lines())
 
 
 def _report_stderr(message: str) -> None:
@@ -287,7 +161,9 @@ class LiveTracker:
         frame is flagged ``JOINTS_EXTRAPOLATED`` (s).
     max_time_jump_s : float
         A frame time further ahead of the stream than this plus the time passed here since
-        its last frame is implausible (sources not stamped with this machine's clock), s.
+        its last frame is implausible (sources not stamped with this machine's clock; a
+        source played back at ``speed`` times real time: that times the time passed; at no
+        pace, ``speed=None``, the check is off), s.
     switch_interval_s : float or None
         The interpreter's thread switch interval during :meth:`run` (None: unchanged). A
         short one bounds how long the loop waits for the interpreter when another thread
@@ -334,6 +210,7 @@ class LiveTracker:
             0.0, reconstructor.catheter.length_mm, ROI_POINTS
         )
         self._capture: NewestOnly | None = None
+        self._speed: float | None = 1.0  # of the source's stream time (None: no pace)
         self._reported: set[str] = set()
         self._closed = False
         self.time_is_monotonic = False
@@ -382,9 +259,11 @@ class LiveTracker:
         if time_s == last:
             s.frames_duplicate += 1
             return False
-        allowed_s = self.max_time_jump_s + (now - self._last_arrival_s)
         behind = time_s < last
-        if not behind and (self.time_is_monotonic or time_s - last <= allowed_s):
+        if not behind and (self.time_is_monotonic or self._speed is None):
+            return self._accept_time(time_s, now)
+        allowed_s = self.max_time_jump_s + (now - self._last_arrival_s) * self._speed
+        if not behind and time_s - last <= allowed_s:
             return self._accept_time(time_s, now)
         # A run of consistent rejected times is a sender that restarted its clock.
         odd = self._odd_times
@@ -606,6 +485,7 @@ class LiveTracker:
             source = NewestOnly(source, monotonic=self.monotonic)
         self._capture = source if isinstance(source, NewestOnly) else None
         self.time_is_monotonic = bool(getattr(source, "time_is_monotonic", False))
+        self._speed = getattr(source, "speed", 1.0)  # a played-back stream's pace
         if self.summary.markers is None and getattr(source, "counts", None) is not None:
             self.summary.markers = source.counts
         stop = _StopRequest()

@@ -165,6 +165,13 @@ def _report_stderr(message: str) -> None:
     print(f"cathtrack: {message}", file=sys.stderr, flush=True)
 
 
+class _Unpaused(threading.local):
+    active = False  # in this thread: inside QueuedSink.submit, never pause
+
+
+_unpaused = _Unpaused()
+
+
 class QueuedSink:
     """A sink run in its own thread behind a bounded queue, off the loop's critical path.
 
@@ -199,8 +206,9 @@ class QueuedSink:
     ----------
     idle : threading.Event or None
         Set by the loop while it waits for a frame (:class:`tracker.live.loop.LiveTracker`
-        attaches its own): each job starts only then (or after ``idle_wait_s``), so that the
-        sink's Python code does not compete with the loop's for the interpreter.
+        attaches its own): a job starts only then, and pauses at its next Python call when
+        a frame comes in (each wait at most ``idle_wait_s``), so that the sink's Python code
+        does not compete with the loop's for the interpreter.
     """
 
     def __init__(
@@ -243,26 +251,42 @@ class QueuedSink:
 
     def submit(self, job: Callable[[], None]) -> None:
         """Run ``job()`` in this sink's thread after what is queued (same queue rules)."""
-        with self._cond:
-            if self._closing:
-                return
-            if not self._thread.is_alive():
-                self._thread.start()
-            while len(self._jobs) >= self.capacity:
-                if not self.keep_all:
-                    self._jobs.popleft()
-                    self.dropped += 1
-                    break
-                self.stalls += 1
-                if self.stalls == 1:
-                    self.report(
-                        f"WARNING: sink {self.name} cannot keep up: its queue of"
-                        f" {self.capacity} is full and the loop waits for it (nothing is lost;"
-                        " every wait is counted)"
-                    )
-                self._cond.wait()
-            self._jobs.append(job)
-            self._cond.notify_all()
+        # Another sink's job may call this: it must not pause holding the queue's lock.
+        _unpaused.active = True
+        try:
+            with self._cond:
+                if self._closing:
+                    return
+                if not self._thread.is_alive():
+                    self._thread.start()
+                while len(self._jobs) >= self.capacity:
+                    if not self.keep_all:
+                        self._jobs.popleft()
+                        self.dropped += 1
+                        break
+                    self._wait_for_room()
+                self._jobs.append(job)
+                self._cond.notify_all()
+        finally:
+            _unpaused.active = False
+
+    def _wait_for_room(self) -> None:
+        """The loop waits for this sink (``keep_all``): counted, the first time loudly."""
+        self.stalls += 1
+        if self.stalls == 1:
+            self.report(
+                f"WARNING: sink {self.name} cannot keep up: its queue of {self.capacity} is"
+                " full and the loop waits for it (nothing is lost; every wait is counted)"
+            )
+        idle = self.idle
+        busy = idle is not None and not idle.is_set()
+        if busy:
+            idle.set()  # waiting, the loop leaves the interpreter to the sinks
+        try:
+            self._cond.wait()
+        finally:
+            if busy:
+                idle.clear()
 
     @property
     def pending(self) -> int:
@@ -308,7 +332,7 @@ class QueuedSink:
         on a frame delays the loop (by up to the switch interval each time the loop lets
         go of it for a system or numpy call). Pausing here hands the loop its frame's time.
         """
-        if event == "call" and not self.idle.is_set():
+        if event == "call" and not self.idle.is_set() and not _unpaused.active:
             self.idle.wait(self.idle_wait_s)
 
     def close(self, timeout_s: float | None = None) -> bool:

@@ -11,6 +11,8 @@ catheter is the blob nearest the registered base and the blobs within ``max_gap_
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -47,6 +49,17 @@ def detection_backgrounds(background: Array) -> tuple[Array, Array]:
     return smooth_for_detection(background), half_resolution(background)
 
 
+def _below_table(lut: Array, threshold: float) -> Array:
+    """``ceil(f(b) - threshold)`` at every background gray level b, saturated to 8 bits: for
+    integer gray levels, ``image < f(b) - threshold`` is ``image < ceil(f(b) - threshold)``,
+    one table lookup and one comparison."""
+    table = lut - threshold
+    np.ceil(table, out=table)
+    np.minimum(table, 255, out=table)
+    np.maximum(table, 0, out=table)
+    return table.astype(np.uint8)
+
+
 def search_box(points_px: Array, pad_px: float, shape: tuple[int, int]) -> Box:
     """The region ``(x0, y0, x1, y1)`` around image points, padded and clipped to the image.
 
@@ -80,7 +93,7 @@ def coarse_region(
     threshold = max(
         s.threshold_sigma * _COARSE_NOISE * photometry.sigma_gray, s.min_threshold_gray
     )
-    below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
+    below = _below_table(photometry.lut, threshold)
     mask = cv2.compare(half_resolution(image), cv2.LUT(coarse_background, below), cv2.CMP_LT)
     base = None if base_px is None else 0.5 * np.asarray(base_px, float).reshape(2)
     picked = pick_blobs(mask, base, settings, scale=0.5)
@@ -108,8 +121,7 @@ def foreground(
     threshold = max(
         s.threshold_sigma * _SMOOTHED_NOISE * photometry.sigma_gray, s.min_threshold_gray
     )
-    # image < f(b) - threshold, for integer gray levels: image < ceil(f(b) - threshold).
-    below = np.clip(np.ceil(photometry.lut - threshold), 0, 255).astype(np.uint8)
+    below = _below_table(photometry.lut, threshold)
     return cv2.compare(
         smooth_for_detection(image[by0:by1, bx0:bx1]),
         cv2.LUT(smoothed_background[by0:by1, bx0:bx1], below),
@@ -168,10 +180,10 @@ def pick_blobs(
     base_ok = False
     main = max(range(len(blobs)), key=lambda i: blobs[i][0])
     if base_px is not None:
-        p = tuple(float(v) for v in np.asarray(base_px, float).reshape(2))
-        if np.all(np.isfinite(p)):
+        p = tuple(float(v) for v in np.ravel(base_px)[:2])
+        if math.isfinite(p[0]) and math.isfinite(p[1]):
             dist = [-cv2.pointPolygonTest(c, p, True) for _, c, _ in blobs]
-            nearest = int(np.argmin(dist))
+            nearest = min(range(len(dist)), key=dist.__getitem__)
             if dist[nearest] <= s.base_search_px * scale:
                 main, base_ok = nearest, True
     x, y, w, h = blobs[main][2]
@@ -184,7 +196,7 @@ def pick_blobs(
         for r in list(rest):
             gx = max(r[0] - box[2], box[0] - (r[0] + r[2]), 0)
             gy = max(r[1] - box[3], box[1] - (r[1] + r[3]), 0)
-            if np.hypot(gx, gy) <= s.max_gap_px * scale:
+            if math.hypot(gx, gy) <= s.max_gap_px * scale:
                 box = [min(box[0], r[0]), min(box[1], r[1]),
                        max(box[2], r[0] + r[2]), max(box[3], r[1] + r[3])]
                 rest.remove(r)

@@ -13,6 +13,7 @@ result maps onto the rows ``[tip, marker_0, ...]`` of each view of
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -200,6 +201,14 @@ def segment_pair(
 
 
 _NUDGE_MM = 1e-3  # finite-difference step of the projection Jacobians at the tip band
+_NUDGES = np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
+_NUDGES.flags.writeable = False
+
+
+def _finite_point(p: Array) -> bool:
+    """Whether both coordinates of a point (2,) are finite (np.isfinite costs more for two
+    numbers)."""
+    return math.isfinite(p[0]) and math.isfinite(p[1])
 
 
 def combine_views(
@@ -233,23 +242,23 @@ def combine_views(
     if rig.kind != "pinhole":
         raise ValueError("combine_views needs the pinhole rig the images were taken with")
     tip_rows = np.concatenate([[True], segmenter.marker_is_tip])
-    banded = [k for k, view in enumerate(views) if np.all(np.isfinite(view.tip_band_px))]
+    banded = [k for k, view in enumerate(views) if _finite_point(view.tip_band_px)]
     # Epipolar check: each row on its own points; the tip by its band centroids where two or
     # more views see the band (a far end is half a band away from a band's centre).
     check = [u.copy() for u in uv]
     if len(banded) >= 2:
         for k, view in enumerate(views):
             check[k][tip_rows] = view.tip_band_px if k in banded else np.nan
-    found = np.array([np.all(np.isfinite(c), axis=-1) for c in check])  # (views, rows)
+    found = np.isfinite(np.stack(check)).all(axis=-1)  # (views, rows)
     points_w = np.full((rejected.size, 3), np.nan)
     groups: dict[tuple[int, ...], list[int]] = {}
-    for row in range(rejected.size):
-        seen = tuple(int(k) for k in np.flatnonzero(found[:, row]))
+    for row, in_view in enumerate(found.T.tolist()):
+        seen = tuple(k for k, f in enumerate(in_view) if f)
         if len(seen) >= 2:
             groups.setdefault(seen, []).append(row)
     # The tip band's centre, projected with three nudged copies (the projection Jacobian
     # there by finite differences) in the same call as its group's points.
-    nudges = np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
+    nudges = _NUDGES
     centre_px: dict[int, Array] = {}
     for seen, members in groups.items():
         sub = rig.subset(seen)
@@ -264,16 +273,17 @@ def combine_views(
             if members[0] == 0:
                 centre_px[k] = projected[len(members) :]
             miss = projected[: len(members)] - check[k][members]
-            residual = np.maximum(residual, np.linalg.norm(miss, axis=-1))
-            variance += np.trace(cov[k][members], axis1=-2, axis2=-1)
+            residual = np.maximum(residual, np.sqrt(np.einsum("ij,ij->i", miss, miss)))
+            c = cov[k][members]
+            variance += c[:, 0, 0] + c[:, 1, 1]
         spread = np.sqrt(np.where(np.isfinite(variance), variance, 0.0))
         bad = residual > np.maximum(s.epipolar_gate_px, 4.0 * spread)
         rejected[np.asarray(members)[bad]] = True
     refined = bool(
         len(banded) >= 2
-        and found[banded, 0].all()
+        and all(found[k, 0] for k in banded)
         and not rejected[0]
-        and all(np.isfinite(views[k].tip_extent_px * views[k].tube_radius_px) for k in banded)
+        and all(math.isfinite(views[k].tip_extent_px * views[k].tube_radius_px) for k in banded)
     )
     if refined:
         half_band = 0.5 * s.band_length_mm
@@ -284,7 +294,7 @@ def combine_views(
             half_band,
         )
         for k, J in zip(banded, jacobians, strict=True):
-            px_per_mm = float(np.linalg.norm(J, axis=-1).max())
+            px_per_mm = math.sqrt(float(np.einsum("ij,ij->i", J, J).max()))
             # The tangent's uncertainty, and what the views disagree on (2 residuals per
             # view for 2 unknowns), as a variance of the tip in the image.
             extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit

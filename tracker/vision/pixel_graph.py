@@ -11,6 +11,26 @@ Array = np.ndarray
 
 _OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 _LENGTHS = np.array([np.hypot(dy, dx) for dy, dx in _OFFSETS])
+_DY, _DX = (np.array(v) for v in zip(*_OFFSETS, strict=True))
+# The edge lengths of n pixels and the row starts of their neighbour lists are prefixes of
+# these, grown on demand (a view costs nothing; np.tile and np.arange cost a few us a frame).
+_tiled: dict[str, Array] = {"lengths": _LENGTHS, "steps": np.arange(0, 9, 8, dtype=np.int32)}
+
+
+def _tiled_lengths(n: int) -> Array:
+    """``np.tile(_LENGTHS, n)`` (read-only)."""
+    if _tiled["lengths"].size < 8 * n:
+        _tiled["lengths"] = np.tile(_LENGTHS, 2 * n)
+        _tiled["lengths"].flags.writeable = False
+    return _tiled["lengths"][: 8 * n]
+
+
+def _steps_of_8(n: int) -> Array:
+    """``np.arange(0, 8 n + 1, 8)`` as int32 (read-only)."""
+    if _tiled["steps"].size < n + 1:
+        _tiled["steps"] = np.arange(0, 16 * n + 1, 8, dtype=np.int32)
+        _tiled["steps"].flags.writeable = False
+    return _tiled["steps"][: n + 1]
 
 
 class PixelGraph:
@@ -28,10 +48,11 @@ class PixelGraph:
         index = np.full((shape[0] + 2) * width, n, np.int32)
         flat = (ys + 1) * width + (xs + 1)
         index[flat] = np.arange(n, dtype=np.int32)
-        offsets = np.array([dy * width + dx for dy, dx in _OFFSETS])
-        nb = index[flat[:, None] + offsets]
-        indptr = np.append(np.arange(0, 8 * n + 1, 8, dtype=np.int32), 8 * n)
-        lengths = np.tile(_LENGTHS, n)
+        nb = index[flat[:, None] + (_DY * width + _DX)]
+        indptr = np.empty(n + 2, np.int32)
+        indptr[: n + 1] = _steps_of_8(n)
+        indptr[n + 1] = 8 * n
+        lengths = _tiled_lengths(n)
         self.n = n
         self.xy = xy
         self.graph = csr_matrix((lengths, nb.ravel(), indptr), shape=(n + 1, n + 1))

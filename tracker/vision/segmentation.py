@@ -47,6 +47,7 @@ expects them); :func:`frame_points` maps them onto the rows ``[tip, marker_0, ..
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -145,7 +146,7 @@ class ViewSegmentation:
 
     @property
     def tip_found(self) -> bool:
-        return bool(np.all(np.isfinite(self.tip_px)))
+        return math.isfinite(self.tip_px[0]) and math.isfinite(self.tip_px[1])
 
 
 def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
@@ -160,11 +161,16 @@ def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
     found : array (1 + n_markers,) of bool
         The quality flag of each row.
     """
-    uv = np.vstack([seg.tip_px[None], seg.markers_px])
-    cov = np.concatenate([seg.tip_cov[None], seg.markers_cov])
-    found = np.concatenate([[seg.tip_found], seg.markers_found])
-    uv = np.where(found[:, None], uv, np.nan)
-    cov = np.where(found[:, None, None], cov, np.nan)
+    n = seg.markers_px.shape[0] + 1
+    uv = np.empty((n, 2))
+    cov = np.empty((n, 2, 2))
+    found = np.empty(n, bool)
+    uv[0], uv[1:] = seg.tip_px, seg.markers_px
+    cov[0], cov[1:] = seg.tip_cov, seg.markers_cov
+    found[0], found[1:] = seg.tip_found, seg.markers_found
+    missing = ~found
+    uv[missing] = np.nan
+    cov[missing] = np.nan
     return uv, cov, found
 
 
@@ -214,6 +220,12 @@ def _median(values: Array) -> float:
     return 0.5 * float(part[(n - 1) // 2] + part[n // 2])
 
 
+def _finite_point(p: Array) -> bool:
+    """Whether both coordinates of a point (2,) are finite (np.isfinite costs more for two
+    numbers)."""
+    return math.isfinite(p[0]) and math.isfinite(p[1])
+
+
 def _interpolate(points: Array, along: Array, at: Array) -> Array:
     """Points (m, 2) sampled at increasing ``along`` (m,), linearly interpolated at ``at`` (k,)."""
     return np.stack([np.interp(at, along, points[:, 0]), np.interp(at, along, points[:, 1])], -1)
@@ -247,6 +259,7 @@ class Segmenter:
         self.interior_fractions = centres / L
         k = max(int(settings.closing_px), 1)
         self._kernel = np.ones((k, k), np.uint8) if k > 1 else None
+        self._floor = settings.sigma_floor_px**2 * np.eye(2)
 
     # ---------------------------------------------------------------- public
     def segment(
@@ -372,14 +385,26 @@ class Segmenter:
         height, width = image.shape
         if self._kernel is not None:
             m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, self._kernel)
-        n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-        big = stats[:, cv2.CC_STAT_AREA] >= s.min_area_px
+        # The mask's pixels in row-major order (cv2.findNonZero: as np.nonzero, for a fraction
+        # of its cost), and the area of their blobs (cv2.connectedComponentsWithStats costs
+        # several times more than the labels and a bincount).
+        points = cv2.findNonZero(m)
+        if points is None:
+            return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
+        points = points.reshape(-1, 2)
+        _, labels = cv2.connectedComponents(m, connectivity=8)
+        lab = labels[points[:, 1], points[:, 0]]
+        big = np.bincount(lab) >= s.min_area_px
         big[0] = False
         if not big.any():
             return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
         # Usually every blob in the region is large: keep the mask as it is.
-        keep = m if big[1:].all() else big[labels].view(np.uint8)
-        ys, xs = np.nonzero(keep)
+        if big[1:].all():
+            keep = m
+        else:
+            keep = big[labels].view(np.uint8)
+            points = points[big[lab]]
+        xs, ys = points[:, 0], points[:, 1]
         # The background as the frame would show it, and the light that is: the contrast is
         # the fraction of that light the catheter blocks.
         lit = photometry.lut[background[y0:y1, x0:x1][ys, xs]].astype(np.float64)
@@ -390,7 +415,8 @@ class Segmenter:
         # ---- pixel graph (8-neighbours) and the geodesic sweep from the base
         graph = PixelGraph(ys, xs, m.shape, xy)
         if base_px is not None:
-            seed = int(np.argmin(np.sum((xy - np.asarray(base_px, float)) ** 2, axis=1)))
+            rel = xy - np.asarray(base_px, float)
+            seed = int(np.argmin(np.einsum("ij,ij->i", rel, rel)))
             dist, joined = graph.sweep(seed, s.max_gap_px)
         else:
             # Double sweep: the farthest pixel from anywhere is an end; the thicker end is the base.
@@ -449,11 +475,12 @@ class Segmenter:
         # distal tube is thinner. A far end as wide as the base is the catheter folded back
         # onto itself in this view (its bending plane seen edge-on), with another band there.
         far = xy[dist >= D - tol]
+        (lo_x, lo_y), (hi_x, hi_y) = far.min(axis=0).tolist(), far.max(axis=0).tolist()
         at_border = (
-            far[:, 0].min() < s.border_px
-            or far[:, 1].min() < s.border_px
-            or far[:, 0].max() > width - 1 - s.border_px
-            or far[:, 1].max() > height - 1 - s.border_px
+            lo_x < s.border_px
+            or lo_y < s.border_px
+            or hi_x > width - 1 - s.border_px
+            or hi_y > height - 1 - s.border_px
         )
         width_ratio = tip_mass / base_mass if base_band is not None else float("nan")
         folded = bool(
@@ -478,7 +505,7 @@ class Segmenter:
             flags |= SegmentationFlag.TIP_NOT_FOUND
             tip = tip_direction = nan2
             bands = []
-        if not np.all(np.isfinite(tip)) and not flags & (
+        if not _finite_point(tip) and not flags & (
             SegmentationFlag.OVERLAP | SegmentationFlag.TIP_AT_BORDER
         ):
             flags |= SegmentationFlag.TIP_NOT_FOUND  # too short a centreline for an end
@@ -487,7 +514,7 @@ class Segmenter:
         markers = np.full((n_mk, 2), np.nan)
         markers_cov = np.full((n_mk, 2, 2), np.nan)
         found = np.zeros(n_mk, bool)
-        if np.all(np.isfinite(tip)):
+        if _finite_point(tip):
             markers[self.marker_is_tip] = tip
             markers_cov[self.marker_is_tip] = tip_cov
             found[self.marker_is_tip] = True
@@ -501,7 +528,7 @@ class Segmenter:
                     markers[k], markers_cov[k], found[k] = band["c"], band["cov"], True
             if not found[interior].all():
                 flags |= SegmentationFlag.MARKER_MISSING
-        floor = s.sigma_floor_px**2 * np.eye(2)
+        floor = self._floor
         all_bands = [b for b in ([base_band] + bands + [tip_band]) if b is not None]
         return ViewSegmentation(
             flags=flags,
@@ -547,7 +574,7 @@ class Segmenter:
         count[:2] = 0.0
         count[-2:] = 0.0
         ok = count > 0
-        if ok.sum() < 3:
+        if np.count_nonzero(ok) < 3:
             return False
         typical_n = _median(count[ok])
         wide = ok & (count > 1.1 * s.overlap_ratio * typical_n)
@@ -640,7 +667,7 @@ class Segmenter:
             cut, p = p[0], p[1:]
             cut_cov = np.zeros((2, 2))
         direction = 3.0 * cut - 4.0 * p[0] + p[1]  # toward the end in both cases
-        norm = np.hypot(direction[0], direction[1])
+        norm = math.hypot(direction[0], direction[1])
         if norm < 1e-9:
             return _NO_END
         direction = direction / norm
@@ -665,7 +692,7 @@ class Segmenter:
         contrast = float(np.partition(w_near, k)[k])  # the plateau, robust to noise
         radius_px = 0.5 * m_per_px / max(contrast, 1e-6)
         var_e = var_e + (np.pi / 8.0 * radius_px) ** 2
-        dd = direction[:, None] * direction[None, :]
+        dd = np.multiply.outer(direction, direction)
         # Across: the end moves sideways with the direction's error.
         var_across = (e * s.tip_direction_sigma_rad) ** 2
         cov = cut_cov + var_e * dd + var_across * (_EYE2 - dd)
