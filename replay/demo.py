@@ -494,12 +494,12 @@ def run_demo(
             out(header_line(settings))
             if live.output is not None:
                 out(f"cathtrack demo: rerun to {'; '.join(live.output.targets)}")
-            ready = cameras.render_ahead(settings.frame_rate_hz)
-            if ready < len(session.frames):
-                out(
-                    f"cathtrack demo: {ready} pairs rendered ahead ({cameras.render_ms:.0f} ms"
-                    " a pair)"
-                )
+            started = time.monotonic()
+            ready = cameras.render_ahead()
+            out(
+                f"cathtrack demo: {ready} image pairs rendered ahead ({cameras.render_ms:.0f} ms"
+                f" a pair, {time.monotonic() - started:.1f} s of waiting); the session starts"
+            )
             start_s = time.monotonic() + settings.start_delay_s
             cameras.start(start_s)
             controller.start(live.joints.address, start_s, lead_s=settings.start_delay_s)

@@ -8,8 +8,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
+import os
 import queue
 import signal
 import threading
@@ -150,10 +152,6 @@ class RenderedSource(PacedSource):
 
 
 # ------------------------------------------------------------------------ simulated cameras
-RENDER_RATE_MARGIN = 0.7
-"""Share of the render rate measured before a session counted on during it."""
-
-
 def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max_ahead, stop):
     """The render process: every pair in order, at most ``max_ahead`` ahead of the release.
 
@@ -164,6 +162,10 @@ def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max
     try:
         rng = np.random.default_rng(seed)
         for k in range(len(q)):
+            if k == max_ahead:
+                with contextlib.suppress(OSError, AttributeError):
+                    # The session runs: render the rest below the loop's priority.
+                    os.nice(10)
             while k - released.value >= max_ahead:
                 if stop.wait(0.005):
                     break
@@ -189,13 +191,13 @@ class SimulatedCameras:
 
     Pair ``k`` shows the catheter at the frames' joints and true delta_L at ``t_k``. The pairs
     are rendered in a separate process, in order and ahead of time (at most ``max_ahead``
-    pairs ahead), so that rendering never takes the loop's interpreter; pair ``k`` is then
-    released at its exposure time ``start_s + t_k`` on the monotonic clock (``start_s`` given
-    to :meth:`start`) and stamped with it, as a camera with a hardware time stamp would
+    pairs ahead), so that rendering never takes the loop's interpreter nor, once
+    :meth:`render_ahead` has waited for them before the session, its processor; pair ``k`` is
+    then released at its exposure time ``start_s + t_k`` on the monotonic clock (``start_s``
+    given to :meth:`start`) and stamped with it, as a camera with a hardware time stamp would
     deliver it. The source is ``live``: the loop captures it in its own thread and takes the
-    newest pair. :meth:`render_ahead` waits, before the session starts, until the renderer is
-    far enough ahead to stay ahead for the whole session at the pace it renders; a pair that
-    still comes from the renderer after its exposure time is released late, stamped with its
+    newest pair. A pair that still comes from the renderer after its exposure time (a session
+    longer than ``max_ahead`` pairs on a slow machine) is released late, stamped with its
     exposure time, and counted in ``late`` (more than ``late_after_s`` after the exposure).
 
     Parameters
@@ -208,7 +210,8 @@ class SimulatedCameras:
     late_after_s : float
         A pair released later than this after its exposure counts as late, s.
     max_ahead : int
-        Pairs rendered and not yet released, at most (about 0.6 MB each).
+        Pairs rendered and not yet released, at most (about 0.6 MB each: 320 pairs, 16 s at
+        20 fps, are 200 MB).
     """
 
     time_is_monotonic = True
@@ -220,7 +223,7 @@ class SimulatedCameras:
         frames: Sequence[Frame],
         seed: int = 0,
         late_after_s: float = 0.025,
-        max_ahead: int = 200,
+        max_ahead: int = 320,
     ) -> None:
         self.times_s = np.array([float(f.time_s) for f in frames])
         self.truth_rad = np.array([float(f.delta_L_true_rad) for f in frames])
@@ -259,24 +262,18 @@ class SimulatedCameras:
         n, spent_s = self._progress[0], self._progress[1]
         return 1e3 * spent_s / n if n else math.nan
 
-    def render_ahead(self, frame_rate_hz: float, timeout_s: float = 120.0) -> int:
-        """Wait until the renderer is far enough ahead to stay ahead of the session.
+    def render_ahead(self, timeout_s: float = 300.0) -> int:
+        """Wait until the pairs are rendered ahead: all of them, or ``max_ahead``.
 
-        At a render rate below the frame rate, the pairs still to render outrun the session
-        unless a share ``1 - rate / frame_rate`` of them is ready first (plus a margin of a
-        few pairs); capped at ``max_ahead``. The rate is taken at :data:`RENDER_RATE_MARGIN`
-        of the one measured so far: once the session runs, the loop needs its share of the
-        machine too. Returns the pairs ready.
+        The session then costs the renderer nothing (a session longer than ``max_ahead``
+        pairs renders the rest as it goes, at a lower priority than the loop). Returns the
+        pairs ready.
         """
-        total = self.times_s.size
+        target = min(self.times_s.size, self.max_ahead)
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self._process.is_alive():
-            n = self.rendered
-            if n >= min(total, 4):
-                rate_hz = RENDER_RATE_MARGIN * 1e3 / self.render_ms
-                lead = total * max(0.0, 1.0 - rate_hz / frame_rate_hz) + 4
-                if n >= min(total, self.max_ahead, math.ceil(lead)):
-                    return n
+        while self.rendered < target and time.monotonic() < deadline:
+            if not self._process.is_alive():
+                raise RuntimeError("the simulated cameras' renderer stopped")
             time.sleep(0.01)
         return self.rendered
 

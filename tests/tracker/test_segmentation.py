@@ -510,3 +510,26 @@ def test_region_of_interest_gives_the_same_points_and_falls_back_to_the_whole_im
         60, 10, 161, 131
     )
     assert search_box(np.full((1, 2), np.nan), 40.0, (480, 640)) == (0, 0, 640, 480)
+
+
+def test_small_dark_specks_near_the_catheter_change_nothing(scene):
+    """Blobs below min_area_px inside the catheter's region are left out of its mask."""
+    catheter, rig, renderer = scene
+    pair = renderer.render(Q_BENT, 0.0, np.random.default_rng(3))
+    segmenter = Segmenter(catheter)
+    base_px = rig.views[0].project(BASE_W)
+    clean = segmenter.segment(pair.images[0], renderer.backgrounds[0], base_px)
+    line = clean.centreline_px
+    lo, hi = line.min(axis=0), line.max(axis=0)
+    xs, ys = np.meshgrid(np.arange(lo[0], hi[0]), np.arange(lo[1], hi[1]))
+    grid = np.column_stack([xs.ravel(), ys.ravel()])
+    clearance = np.min(np.linalg.norm(grid[:, None] - line[None], axis=-1), axis=1)
+    x, y = grid[np.argmax(clearance)].astype(int)
+    assert clearance.max() > 10.0  # the speck lies inside the region, clear of the tube
+    specked = pair.images[0].copy()
+    specked[y - 1 : y + 2, x - 1 : x + 2] = 0  # 9 px < min_area_px
+    seg = segmenter.segment(specked, renderer.backgrounds[0], base_px)
+    assert seg.flags == clean.flags
+    for a, b in ((seg.tip_px, clean.tip_px), (seg.markers_px, clean.markers_px),
+                 (seg.base_px, clean.base_px), (seg.centreline_px, clean.centreline_px)):
+        np.testing.assert_allclose(a, b, atol=1e-9)

@@ -767,12 +767,20 @@ class FilterBank:
             status |= np.where(done | uninformative, 0, _F["HELD"])
             status |= np.where((n_in > 0) & ~(ok_S & post_ok), _F["COVARIANCE_REPAIRED"], 0)
             status |= np.where(uninformative, _F["UNINFORMATIVE"] | _F["HELD"], 0)
-        if done.any():
+        if rows is not b and done.all():
+            self.x[:, 0] = self.good_x[:, 0] = x_post
+            self.P[:, 0] = self.good_P[:, 0] = P_post
+            self.mismatch_scale = 1.0 + MISMATCH_DECAY * (self.mismatch_scale - 1.0)
+        elif done.any():
             bd, hd = b[done], h[done]
             self.x[bd, hd] = self.good_x[bd, hd] = x_post[done]
             self.P[bd, hd] = self.good_P[bd, hd] = P_post[done]
             self.mismatch_scale[bd] = 1.0 + MISMATCH_DECAY * (self.mismatch_scale[bd] - 1.0)
-        self.log_weight[b, h] += np.where(np.isfinite(log_lik), log_lik, -1e300)
+        log_lik = np.where(np.isfinite(log_lik), log_lik, -1e300)
+        if rows is b:
+            self.log_weight[b, h] += log_lik
+        else:
+            self.log_weight[:, 0] += log_lik
         shown = usable & ~uninformative
         innovation = None
         if B == 1:

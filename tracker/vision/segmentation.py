@@ -681,13 +681,13 @@ class Segmenter:
         near = np.flatnonzero(near)
         rel = xy[near] - cut
         near = near[np.einsum("ij,ij->i", rel, rel) <= reach**2]
-        e, var_e, m_per_px = _ends_cut(xy[near], w[near], var_w[near], cut, direction, slab)
-        if not np.isfinite(e):
+        w_near = w[near]
+        e, var_e, m_per_px = _ends_cut(xy[near], w_near, var_w[near], cut, direction, slab)
+        if not math.isfinite(e):
             return _NO_END
         # The end disc of a tube seen obliquely sticks out past the end point by up to
         # pi/4 of the radius (m / 2 per unit contrast); half of that is the uncertainty of a
         # single view (segment_pair removes it with both views).
-        w_near = w[near]
         k = int(0.9 * (w_near.size - 1))
         contrast = float(np.partition(w_near, k)[k])  # the plateau, robust to noise
         radius_px = 0.5 * m_per_px / max(contrast, 1e-6)
