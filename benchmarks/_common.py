@@ -6,7 +6,9 @@ benchmarks/bench_*.py`` works from a plain checkout as well as from the project'
 
 from __future__ import annotations
 
+import subprocess
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -17,3 +19,15 @@ if str(ROOT) not in sys.path:
 def verdict(ok: bool) -> str:
     """PASS or MISS against a benchmark target."""
     return "PASS" if ok else "MISS"
+
+
+@contextmanager
+def busy_processes(n: int):
+    """``n`` processes that spin for as long as the block runs (a CPU hog each)."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()

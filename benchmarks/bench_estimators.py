@@ -1,6 +1,7 @@
 """Per-frame cost of the estimators (prints only; no asserts).
 
-Run from the repository root: ``python benchmarks/bench_estimators.py``.
+Run from the repository root: ``python benchmarks/bench_estimators.py [--load N]``
+(``--load N``: the robust filters again with N busy processes; ``--robust``: only them).
 
 - The per-frame estimators (Tip Position, Body Positions, Tip Velocity), closed form, each
   against the paper's least-squares baseline of the same estimator (``*-lsq``) on the same
@@ -14,17 +15,21 @@ Run from the repository root: ``python benchmarks/bench_estimators.py``.
   left out) is printed for context.
 
 Every step consumes a different frame of a simulated sequence (moving joints, 1 mm noise),
-measured in the same run. Targets: UKF step median <= 150 us; Tip Position baseline / UKF
+measured in the same run. The robust filters also report the median CPU time of a step
+(``time.thread_time``), which other processes on a shared machine disturb less than the wall
+time. Targets: UKF step median <= 150 us; Tip Position baseline / UKF
 >= 10.
 """
 
 from __future__ import annotations
 
+import argparse
+import os
 import platform
 import time
 
 import numpy as np
-from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
+from _common import busy_processes, verdict  # noqa: E402,F401  (puts the repo on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.rotations import rotate_z  # noqa: E402
@@ -99,15 +104,19 @@ def frames(
     return out
 
 
-def time_steps(step, observations) -> np.ndarray:
-    """Microseconds of each call of ``step`` on consecutive frames."""
+def time_steps(step, observations, cpu: bool = False):
+    """Microseconds of each call of ``step`` on consecutive frames (wall time; with ``cpu``
+    also the thread's CPU time: ``(wall, cpu)``)."""
     step(observations[0])  # warm-up (plans, caches)
     ns = np.empty(len(observations) - 1, dtype=np.int64)
+    cpu_ns = np.empty(len(observations) - 1, dtype=np.int64)
     for i, observation in enumerate(observations[1:]):
+        start_cpu = time.thread_time_ns()
         start = time.perf_counter_ns()
         step(observation)
         ns[i] = time.perf_counter_ns() - start
-    return ns / 1e3
+        cpu_ns[i] = time.thread_time_ns() - start_cpu
+    return (ns / 1e3, cpu_ns / 1e3) if cpu else ns / 1e3
 
 
 def report(label: str, us: np.ndarray) -> float:
@@ -158,29 +167,59 @@ def robust_filters(catheter, baseline_us: float) -> None:
     least-squares baseline (median of this run) divided by it.
     """
     sequence = frames(N_ROBUST, np.random.default_rng(2), catheter, independent_velocity=False)
-    print(f"Robust filters, default settings, {N_ROBUST:,} frames each (us per step)")
+    print(
+        f"Robust filters, default settings, {N_ROBUST:,} frames each (us per step; load"
+        f" average {os.getloadavg()[0]:.1f})"
+    )
     for name, target in (("ukf", TARGET_ROBUST_UKF_US), ("grid", TARGET_GRID_US)):
-        us = time_steps(make_estimator(name, catheter).step, sequence)
+        us, cpu_us = time_steps(make_estimator(name, catheter).step, sequence, cpu=True)
         median = float(np.median(us))
         print(
             f"  {name:5s} median {median:7.1f}   p99 {np.percentile(us, 99):7.1f}"
+            f"   cpu median {np.median(cpu_us):7.1f}"
             f"   target <= {target:.0f} us {verdict(median <= target)}"
             f"   baseline / {name}: {baseline_us / median:.1f}"
         )
 
 
 # ------------------------------------------------------------------ main
-def main() -> None:
-    print(f"Python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}")
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--load", type=int, default=0, metavar="N",
+        help="time the robust filters again with N busy processes (N = the cores: a hog on"
+        " every core)",
+    )  # fmt: skip
+    parser.add_argument("--robust", action="store_true", help="only the robust filters")
+    args = parser.parse_args(argv)
+    print(
+        f"Python {platform.python_version()}, numpy {np.__version__}, {platform.machine()},"
+        f" {os.cpu_count()} CPUs"
+    )
     print()
     rng = np.random.default_rng(0)
     catheter = default_catheter()
     sequence = frames(N_FRAMES, rng, catheter, independent_velocity=True)
 
-    baseline_us = per_frame_table(catheter, sequence)["tip-position"]
+    def baseline() -> float:
+        """Median of the Tip Position least-squares baseline's step, us (this run)."""
+        step = make_estimator("tip-position-lsq", catheter).step
+        return float(np.median(time_steps(step, sequence[: N_PER_FRAME + 1])))
+
+    if args.robust:
+        baseline_us = baseline()
+    else:
+        baseline_us = per_frame_table(catheter, sequence)["tip-position"]
     print()
     robust_filters(catheter, baseline_us)
     print()
+    if args.load:
+        with busy_processes(args.load):
+            print(f"With {args.load} busy processes (the baseline measured under them too):")
+            robust_filters(catheter, baseline())
+        print()
+    if args.robust:
+        return
 
     fused = BendingPlaneUKF(catheter, UKFSettings(velocity_is_finite_difference=False))
     ukf_us = time_steps(fused.step, sequence)

@@ -31,15 +31,13 @@ import argparse
 import os
 import platform
 import socket
-import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-from _common import verdict  # noqa: E402,F401  (puts the repository on sys.path)
+from _common import busy_processes, verdict  # noqa: E402,F401  (puts the repo on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.pose import Pose  # noqa: E402
@@ -67,20 +65,6 @@ ROI_POINTS = 12
 def percentiles_ms(values_s) -> tuple[float, float]:
     v = 1e3 * np.asarray(values_s)
     return float(np.median(v)), float(np.percentile(v, 99))
-
-
-@contextmanager
-def busy_processes(n: int):
-    """``n`` processes that spin for as long as the block runs (a CPU hog each)."""
-    hogs = [
-        subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)
-    ]
-    try:
-        yield
-    finally:
-        for hog in hogs:
-            hog.kill()
-            hog.wait()
 
 
 # ------------------------------------------------------------------------- segmentation

@@ -33,6 +33,7 @@ alone) and ``estimate_noise``.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 import scipy.fft
@@ -43,7 +44,6 @@ from tracker.estimators.deviation import (
     deviation_decay,
     deviation_jacobian,
     deviation_prior,
-    expansion_basis,
     quadratic_moments,
 )
 from tracker.estimators.measurement import (
@@ -100,6 +100,8 @@ class GridFilter:
         self.angles = -math.pi + self.cell_rad * np.arange(self.cells)
         self._turn = np.exp(1j * self.angles)
         self._k2 = np.arange(self.cells // 2 + 1, dtype=float) ** 2
+        # Per cell [cos, sin, 1, expansion_basis(mu)] of the likelihood (column 2 stays 1).
+        self._basis = np.ones((self.cells, 8))
         self._expansion = ShapeExpansion(catheter)
         self.reset()
 
@@ -170,7 +172,7 @@ class GridFilter:
             three_d = isinstance(groups, FrameGroups)
             present = groups.present[0]
             if three_d:
-                d2, log_lik, residual, update = self._likelihood_3d(groups, Q, dt, present)
+                d2, log_lik, update = self._likelihood_3d(groups, Q, dt, present)
             else:
                 d2, log_lik = self._likelihood_views(groups)
             self._multiply(log_lik)
@@ -247,8 +249,8 @@ class GridFilter:
         self._moments = None
 
     def _likelihood_3d(self, groups: FrameGroups, Q: float, dt: float, present: Array):
-        """Per cell and present group d^2 (N, G'), the frame's log-likelihood (N,), the
-        model-frame residuals (N, 3 G') and the Kalman update of the deviation means."""
+        """Per cell and present group d^2 (N, G'), the frame's log-likelihood (N,) and the
+        Kalman update of the deviation means."""
         s = self.settings
         M = model_error_covariance(
             groups, s.joint_error_white_mm, s.velocity_relative_error, np.array([Q]),
@@ -264,33 +266,40 @@ class GridFilter:
             S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
             c = c + bias
         G = y.shape[0]
-        # Rz(q_r + delta)^T y - c = [cos, sin, 1] A for every cell and group: (N, 3G).
-        A = np.empty((3, G, 3))
+        # Rz(q_r + delta)^T y - c - JK expansion_basis(mu) = basis A for every cell and group,
+        # with basis = [cos, sin, 1, expansion_basis(mu)] of each cell: (N, 3G).
+        rows = 8 if self._deviation else 3
+        A = np.empty((rows, G, 3))
         A[0, :, 0], A[0, :, 1], A[0, :, 2] = y[:, 0], y[:, 1], 0.0
         A[1, :, 0], A[1, :, 1], A[1, :, 2] = y[:, 1], -y[:, 0], 0.0
         A[2, :, 0], A[2, :, 1], A[2, :, 2] = -c[:, 0], -c[:, 1], y[:, 2] - c[:, 2]
+        basis = self._basis[:, :rows]
         turned = self._turn * complex(math.cos(groups.q_r[0]), math.sin(groups.q_r[0]))
-        basis = np.empty((self.cells, 3))
-        basis[:, 0], basis[:, 1], basis[:, 2] = turned.real, turned.imag, 1.0
-        residual = basis @ A.reshape(3, 3 * G)
+        basis[:, 0], basis[:, 1] = turned.real, turned.imag
         if self._deviation:
-            residual -= expansion_basis(self.mu) @ np.moveaxis(JK, -1, 0).reshape(5, 3 * G)
-        # Whitened by each group's Cholesky factor: d^2 = |L^-1 r|^2.
+            A[3:] = -np.moveaxis(JK, -1, 0)
+            mu = self.mu
+            basis[:, 3:5] = mu
+            basis[:, 5] = mu[:, 0] * mu[:, 0]
+            basis[:, 6] = mu[:, 0] * mu[:, 1]
+            basis[:, 7] = mu[:, 1] * mu[:, 1]
+        A = A.reshape(rows, 3 * G)
+        # Whitened by each group's Cholesky factor, d^2 = |L^-1 r|^2, folded into A.
         L, _ = cholesky(S)
         whitening = np.zeros((G, 3, G, 3))
         whitening[np.arange(G), :, np.arange(G), :] = np.swapaxes(np.linalg.inv(L), -1, -2)
-        white = residual @ whitening.reshape(3 * G, 3 * G)
+        white = basis @ (A @ whitening.reshape(3 * G, 3 * G))
         white *= white
-        d2 = white @ np.repeat(np.eye(G), 3, axis=0)  # sums of three squares, (N, G)
+        d2 = white @ _triple_sums(G)  # sums of three squares, (N, G)
         logdet = 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)))
         terms = mixture_log_likelihood(d2, 3, s.outlier_probability, s.outlier_scale)
         log_lik = terms @ np.ones(G) - 0.5 * (logdet + 3 * G * _LOG_2PI)
 
         def update(inlier: Array) -> None:
             if self._deviation:
-                self._update_deviation(J, S, inlier, residual)
+                self._update_deviation(J, S, inlier, basis, A)
 
-        return d2, log_lik, residual, update
+        return d2, log_lik, update
 
     def _likelihood_views(self, groups):
         """Per cell and point d^2 (N, G) and the frame's log-likelihood (N,), single views."""
@@ -304,9 +313,12 @@ class GridFilter:
         terms = mixture_log_likelihood(d2, 2, s.outlier_probability, s.outlier_scale)
         return d2, terms.sum(axis=1) - 0.5 * float(np.sum(logdet + 2 * _LOG_2PI))
 
-    def _update_deviation(self, J: Array, S_g: Array, inlier: Array, residual: Array) -> None:
+    def _update_deviation(
+        self, J: Array, S_g: Array, inlier: Array, basis: Array, A: Array
+    ) -> None:
         """Kalman update of every cell's deviation mean with the inlying groups (one gain,
-        with the Jacobian J (G, 3, 2) at the deviation of the posterior mean)."""
+        with the Jacobian J (G, 3, 2) at the deviation of the posterior mean); the model-frame
+        residuals of the cells are ``basis @ A`` ((N, k) and (k, 3G))."""
         J_in = J[inlier]
         k = J_in.shape[0]
         noise = S_g[inlier] - J_in @ self.Sigma @ np.swapaxes(J_in, -1, -2)
@@ -316,9 +328,15 @@ class GridFilter:
         S = H @ self.Sigma @ H.T + R.reshape(3 * k, 3 * k)
         gain = np.linalg.solve(S, H @ self.Sigma).T  # (2, m)
         columns = np.repeat(inlier, 3)
-        self.mu += residual[:, columns] @ gain.T
+        self.mu += basis @ (A[:, columns] @ gain.T)
         Sigma = self.Sigma - gain @ S @ gain.T
         self.Sigma = 0.5 * (Sigma + Sigma.T)
+
+
+@lru_cache(maxsize=16)
+def _triple_sums(G: int) -> Array:
+    """(3G, G): sums each group's three consecutive columns."""
+    return np.repeat(np.eye(G), 3, axis=0)
 
 
 __all__ = ["DEFAULT_CELLS", "GridFilter"]

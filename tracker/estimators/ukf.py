@@ -118,11 +118,12 @@ def observation_groups(
             velocity_cov, cross,
         )  # fmt: skip
         P = groups.n_positions
-        given = np.zeros(P, dtype=bool)
-        given[0] = tip is not None and tip_cov is not None
-        given[1:] = markers is not None
-        partial = bool(np.any(given & ~groups.present[0, :P]))
-        if groups.present[0, :P].any() or (not observation.views and groups.present.any()):
+        found = groups.present[0, :P]
+        partial = bool(
+            (tip is not None and tip_cov is not None and not found[0])
+            or (markers is not None and not found[1:].all())
+        )
+        if found.any() or (not observation.views and groups.present.any()):
             return groups, partial
     if observation.views:
         views = _view_groups(catheter, observation, q)

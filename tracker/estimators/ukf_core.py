@@ -58,9 +58,9 @@ from tracker.estimators.deviation import deviation_decay, deviation_prior, quadr
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
-    is_every_trial,
     fit_frame,
     group_coefficients,
+    is_every_trial,
     jump_probability,
     model_error_covariance,
     offered_velocity,
@@ -157,7 +157,7 @@ def check_measurement_covariance(noise: Array, present: Array) -> None:
     """ValueError naming the problem if a present group's noise is not usable (its
     rotation-invariant part, which the filters use, must be positive definite)."""
     diagonal = np.diagonal(noise, axis1=-2, axis2=-1)
-    if not np.all((diagonal > 0).all(-1) | ~present):
+    if not ((diagonal > 0).all(-1) | ~present).all():
         raise ValueError(
             "measurement covariance of the frame is not positive definite (or not finite): "
             "check tip_cov_b, markers_cov_b, velocity_cov_b, velocity_tip_cov_b or the view "
@@ -333,9 +333,10 @@ class FilterBank:
         turn = change[:, 0]
         self.time_s, self.q = time_s.copy(), q.copy()
         Q = process_variance(s.process_noise_rad2_s, s.rotation_noise_gain_rad, dt, turn)
-        flags = np.zeros(B, dtype=np.int64)
-        if partial is not None:
-            flags |= np.where(partial, _F["PARTIAL"], 0)
+        if partial is None:
+            flags = np.zeros(B, dtype=np.int64)
+        else:
+            flags = np.where(partial, _F["PARTIAL"], 0).astype(np.int64, copy=False)
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
             nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
@@ -356,7 +357,7 @@ class FilterBank:
         if self.deviation is not None:
             k = self.deviation
             lead = self.x[np.arange(B), self.leading(), k : k + 2]
-            far = np.any(lead * lead > 9.0 * self.deviation_prior(q), axis=1)
+            far = (lead * lead > 9.0 * self.deviation_prior(q)).any(1)
             flags |= np.where(far & self.initialised, _F["MODEL_MISMATCH"], 0)
         mean, var = self.moments()
         valid = self.initialised & np.isfinite(mean)
@@ -649,7 +650,7 @@ class FilterBank:
 
     def _normalise(self) -> None:
         counts = self.active.sum(axis=1)
-        self._single = bool(np.all(counts <= 1))
+        self._single = bool((counts <= 1).all())
         if self._single:
             self.log_weight = np.where(self.active, 0.0, -np.inf)
             return
@@ -813,7 +814,7 @@ def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:
         # A few matrices: LAPACK directly (numpy's stacked wrappers cost ten times the work).
         c, xi, info = lapack.dposv(S[i], rhs[i], lower=1)
         if info == 0:
-            x[i], logdet[i], ok[i] = xi, 2.0 * np.sum(np.log(np.diagonal(c))), True
+            x[i], logdet[i], ok[i] = xi, 2.0 * np.log(np.diagonal(c)).sum(), True
     if r > 2:
         L, ok = cholesky(S)
         x = np.where(ok[:, None, None], np.linalg.solve(np.where(ok[:, None, None], S,
