@@ -1329,14 +1329,28 @@ ESTIMATOR_FAULTS = [
     ("marker covariance zero", "markers_cov_b"),
     ("markers 1e10 mm", "markers_b_mm"),
     ("markers of the wrong shape", dict(markers_b_mm=np.zeros((5, 3)))),
+    ("tip covariance tiny", dict(tip_cov_b=1e-30 * I3)),
+    ("tip covariance huge", dict(tip_cov_b=1e300 * I3)),
+    ("tip covariance not symmetric", dict(tip_cov_b=I3 + np.triu(np.ones((3, 3)), 1))),
+    ("q_r 1e300", dict(q=np.array([1e300, 0.5, 0.2]))),
+    ("q_dot 1e300", dict(q_dot=np.array([0.0, 1e300, 0.0]))),
+    ("q_dot NaN", dict(q_dot=np.array([np.nan, 0.0, 0.0]))),
+    ("velocity 1e300", dict(velocity_b_mm_s=np.full(3, 1e300))),
+    ("velocity covariance zero", dict(velocity_cov_b=np.zeros((3, 3)))),
+    ("time equal to the last frame", "same time"),
+    ("time 1e9 s ahead", "far future"),
 ]
 
 
-def _bad_observation(observation, change):
+def _bad_observation(observation, change, previous=None):
     if change == "markers_cov_b":
         change = dict(markers_cov_b=np.zeros_like(observation.markers_cov_b))
     elif change == "markers_b_mm":
         change = dict(markers_b_mm=np.full_like(observation.markers_b_mm, 1e10))
+    elif change == "same time":
+        change = dict(time_s=previous.time_s)
+    elif change == "far future":
+        change = dict(time_s=observation.time_s + 1e9)
     return dataclasses.replace(observation, **change)
 
 
@@ -1363,7 +1377,7 @@ def test_estimator_input_faults_are_flagged_and_do_not_poison_the_filter(
     observations, reference, name, change
 ):
     catheter, obs = observations
-    out = _run(catheter, obs[:K] + [_bad_observation(obs[K], change)] + obs[K + 1 :])
+    out = _run(catheter, obs[:K] + [_bad_observation(obs[K], change, obs[K - 1])] + obs[K + 1 :])
     step = out[K]
     if isinstance(step, ValueError):
         assert "\n" not in str(step)

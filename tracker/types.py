@@ -32,6 +32,8 @@ class Flag(enum.Flag):
     NOT_CONVERGED = enum.auto()  # the least-squares baseline did not report convergence
     MODEL_MISMATCH = enum.auto()  # data persistently inconsistent with the model (e.g. contact
     # deflection): accepted with its covariance inflated to the observed misfit
+    INVALID_INPUT = enum.auto()  # the observation failed the input checks: skipped, the
+    # estimate held (tracker.estimators.checks)
 
 
 @dataclass(frozen=True)

@@ -643,7 +643,7 @@ def test_make_estimator_builds_the_filters():
     ukf = make_estimator("ukf", catheter, process_noise_rad2_s=1e-3)
     position = make_estimator("ukf-position", catheter)
     grid = make_estimator("grid", catheter, cells=1024, outlier_probability=0.05)
-    assert isinstance(ukf, BendingPlaneUKF) and ukf.name == "ukf"
+    assert isinstance(ukf.inner, BendingPlaneUKF) and ukf.name == "ukf"
     assert ukf.settings.use_velocity and not position.settings.use_velocity
     assert position.name == "ukf-position"
     assert grid.name == "grid" and grid.cells == 1024

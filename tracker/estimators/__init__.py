@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from models.catheter import Catheter
+from tracker.estimators.checks import CheckedEstimator
 from tracker.estimators.grid import DEFAULT_CELLS, GridFilter
 from tracker.estimators.per_frame import Estimator, PerFrameEstimator
 from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
@@ -27,11 +28,19 @@ def estimator_names() -> list[str]:
 
 
 def make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
-    """Build an estimator by name (see :func:`estimator_names`).
+    """Build an estimator by name (see :func:`estimator_names`), behind the input checks of
+    :mod:`tracker.estimators.checks` (a bad observation is a flagged, skipped step).
 
     The filters take :class:`UKFSettings` fields as keyword settings; ``grid`` also takes
     ``cells`` (default :data:`~tracker.estimators.grid.DEFAULT_CELLS`).
     """
+    n_markers = len(catheter.marker_arclengths_mm)
+    estimator = _make_estimator(name, catheter, **settings)
+    stateful = not isinstance(estimator, PerFrameEstimator)
+    return CheckedEstimator(estimator, n_markers, check_time=stateful)
+
+
+def _make_estimator(name: str, catheter: Catheter, **settings) -> Estimator:
     if name in PER_FRAME_NAMES:
         if settings:
             raise ValueError(f"estimator {name!r} takes no settings, got {sorted(settings)}")

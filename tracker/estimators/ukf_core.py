@@ -807,6 +807,10 @@ def _spd_solve(S: Array, rhs: Array) -> tuple[Array, Array, Array]:
     """Solutions of ``S x = rhs`` for symmetric positive-definite S (r, m, m), rhs (r, m, k),
     by Cholesky; log det S; which S were positive definite (others: zeros, NaN)."""
     r = S.shape[0]
+    if r == 1:
+        c, x, info = lapack.dposv(S[0], rhs[0], lower=1)
+        if info == 0:
+            return x[None], np.array([2.0 * np.log(np.diagonal(c)).sum()]), np.ones(1, bool)
     x = np.zeros_like(rhs)
     logdet = np.full(r, np.nan)
     ok = np.zeros(r, dtype=bool)
