@@ -98,6 +98,23 @@ def _segment(table: Any, where: str) -> ModalSegment:
         raise ModelFileError(f"{where}: {exc}") from None
 
 
+def read_toml_file(path: str | Path, error: type, what: str) -> dict[str, Any]:
+    """The parsed TOML of a cathtrack file, or one ``error`` (a ValueError subclass) naming the
+    file and the problem: unreadable, not UTF-8, malformed or too deeply nested TOML."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise error(f"cannot read {what} file {path}: {exc.strerror or exc}") from None
+    try:
+        return tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        message = " ".join(str(exc).split()) or "nested too deeply"
+        raise error(f"{path}: malformed TOML: {message}") from None
+
+
 def check_header(
     data: dict[str, Any], fmt: str, version: int, source: str, error: type, what: str
 ) -> None:
@@ -161,17 +178,5 @@ def load_catheter(path: str | Path) -> Catheter:
         One message naming the file and the problem: unreadable file, malformed TOML, a
         missing or invalid key.
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise ModelFileError(
-            f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})"
-        ) from None
-    except OSError as exc:
-        raise ModelFileError(f"cannot read model file {path}: {exc.strerror or exc}") from None
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise ModelFileError(f"{path}: malformed TOML: {exc}") from None
+    data = read_toml_file(path, ModelFileError, "model")
     return catheter_from_dict(data, str(path))

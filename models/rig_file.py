@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from models.imaging import DEFAULT_VIEW_NAMES, OrthographicPlane, PinholeView, Rig
-from models.model_file import check_header
+from models.model_file import check_header, read_toml_file
 from models.pose import Pose
 
 Array = np.ndarray
@@ -359,19 +359,7 @@ def view_names(data: dict[str, Any], source: str = "rig") -> tuple[str, ...]:
 
 def read_rig_file(path: str | Path) -> dict[str, Any]:
     """The parsed TOML of a rig file, or one RigFileError naming the file and the problem."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise RigFileError(
-            f"{path}: not a UTF-8 text file ({exc.reason} at byte {exc.start})"
-        ) from None
-    except OSError as exc:
-        raise RigFileError(f"cannot read rig file {path}: {exc.strerror or exc}") from None
-    try:
-        return tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise RigFileError(f"{path}: malformed TOML: {_one_line(exc)}") from None
+    return read_toml_file(path, RigFileError, "rig")
 
 
 def load_rig(path: str | Path, model: str = "pinhole") -> Rig:

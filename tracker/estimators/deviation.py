@@ -127,6 +127,14 @@ def quadratic_terms(dq: Array) -> Array:
 def quadratic_moments(K: Array, Sigma: Array) -> tuple[Array, Array]:
     """Mean (..., 3) and covariance (..., 3, 3) of ``K quadratic_terms(dq)`` for a zero-mean
     Gaussian dq of covariance Sigma (..., 2, 2), K (..., 3, 3) (Isserlis' theorem)."""
+    if Sigma.shape == (2, 2):
+        # One covariance (the grid filter's, every frame): the same numbers from floats.
+        a, b, d = float(Sigma[0, 0]), float(Sigma[0, 1]), float(Sigma[1, 1])
+        cov = np.array(
+            [[2 * a * a, 2 * a * b, 2 * b * b], [2 * a * b, a * d + b * b, 2 * b * d],
+             [2 * b * b, 2 * b * d, 2 * d * d]]
+        )  # fmt: skip
+        return K @ np.array([a, b, d]), K @ cov @ np.swapaxes(K, -1, -2)
     a, b, d = Sigma[..., 0, 0], Sigma[..., 0, 1], Sigma[..., 1, 1]
     moments = np.stack([a, b, d], -1)
     cov = np.zeros(Sigma.shape[:-2] + (3, 3))

@@ -33,7 +33,6 @@ alone) and ``estimate_noise``.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 import scipy.fft
@@ -100,8 +99,10 @@ class GridFilter:
         self.angles = -math.pi + self.cell_rad * np.arange(self.cells)
         self._turn = np.exp(1j * self.angles)
         self._k2 = np.arange(self.cells // 2 + 1, dtype=float) ** 2
-        # Per cell [cos, sin, 1, expansion_basis(mu)] of the likelihood (column 2 stays 1).
-        self._basis = np.ones((self.cells, 8))
+        # Rows [cos, sin, 1, expansion_basis(mu)] of every cell for the likelihood (row 2
+        # stays 1), and the stack the prediction convolves.
+        self._basis = np.ones((8, self.cells))
+        self._stack = np.empty((3, self.cells))
         self._expansion = ShapeExpansion(catheter)
         self.reset()
 
@@ -110,7 +111,8 @@ class GridFilter:
         s = self.settings
         self.p = np.full(self.cells, 1.0 / self.cells)
         self._deviation = s.estimates_deviation
-        self.mu = np.zeros((self.cells, 2))
+        # The deviation's mean (dq_p, dq_d) given each cell's angle, mm: (2, cells).
+        self.mu = np.zeros((2, self.cells))
         self.Sigma = np.diag(deviation_prior(np.zeros((1, 3)), s.joint_error_mm, 0.0)[0])
         self._pending_variance = 0.0
         self._initialised = False
@@ -200,7 +202,7 @@ class GridFilter:
             )  # fmt: skip
         if self._deviation:
             prior = deviation_prior(q[None], s.joint_error_mm, s.gain_error)[0]
-            if np.any(self.mu[self._cell(mean)] ** 2 > 9.0 * prior):
+            if np.any(self.mu[:, self._cell(mean)] ** 2 > 9.0 * prior):
                 flags |= Flag.MODEL_MISMATCH
         return Estimate(
             time_s=t, delta_L_rad=mean, std_rad=std, q_r_rad=float(q[0]), flags=flags,
@@ -226,15 +228,18 @@ class GridFilter:
         p = self.p
         if variance > 0.01 * self.cell_rad**2:
             # The wrapped normal's Fourier coefficients at the integer frequencies of the grid.
-            kernel = np.exp(-0.5 * variance * self._k2)
+            # Beyond exp(-746) the coefficients are exactly 0.0 in doubles: not computed.
+            used = min(self._k2.size, int(math.sqrt(1492.0 / variance)) + 1)
+            kernel = np.zeros(self._k2.size)
+            np.exp(-0.5 * variance * self._k2[:used], out=kernel[:used])
             if self._deviation and variance > (2 * self.cell_rad) ** 2:
                 # The deviation means follow by moment matching: convolve p and p mu at once.
-                stack = np.empty((3, self.cells))
+                stack = self._stack
                 stack[0] = self.p
-                stack[1:] = (self.p[:, None] * self.mu).T
+                np.multiply(self.p, self.mu, out=stack[1:])
                 blurred = scipy.fft.irfft(scipy.fft.rfft(stack) * kernel, self.cells)
                 p = np.maximum(blurred[0], 0.0)
-                self.mu = (blurred[1:] / np.maximum(p, 1e-300)).T
+                self.mu = blurred[1:] / np.maximum(p, 1e-300)
             else:
                 p = np.maximum(scipy.fft.irfft(scipy.fft.rfft(self.p) * kernel, self.cells), 0.0)
             p /= p.sum()
@@ -243,7 +248,7 @@ class GridFilter:
         if jump > 0:
             mixed = (1.0 - jump) * p + jump / self.cells
             # A jump lands anywhere with the deviation's prior mean (zero).
-            self.mu *= ((1.0 - jump) * p / mixed)[:, None]
+            self.mu *= (1.0 - jump) * p / mixed
             p = mixed
         self.p = p
         self._moments = None
@@ -261,45 +266,42 @@ class GridFilter:
         if self._deviation:
             # The deviation enters with its Jacobian at the most probable cell's deviation, and
             # its quadratic term with the mean and spread of the shared covariance.
-            J = deviation_jacobian(JK[..., :2], JK[..., 2:], self.mu[int(np.argmax(self.p))])
+            J = deviation_jacobian(JK[..., :2], JK[..., 2:], self.mu[:, int(np.argmax(self.p))])
             bias, spread = quadratic_moments(JK[..., 2:], self.Sigma)
             S = S + J @ self.Sigma @ np.swapaxes(J, -1, -2) + spread
             c = c + bias
         G = y.shape[0]
-        # Rz(q_r + delta)^T y - c - JK expansion_basis(mu) = basis A for every cell and group,
-        # with basis = [cos, sin, 1, expansion_basis(mu)] of each cell: (N, 3G).
+        # Rz(q_r + delta)^T y - c - JK expansion_basis(mu) = A^T basis for every group and
+        # cell, with basis the rows [cos, sin, 1, expansion_basis(mu)] of the cells: (3G, N).
         rows = 8 if self._deviation else 3
         A = np.empty((rows, G, 3))
         A[0, :, 0], A[0, :, 1], A[0, :, 2] = y[:, 0], y[:, 1], 0.0
         A[1, :, 0], A[1, :, 1], A[1, :, 2] = y[:, 1], -y[:, 0], 0.0
         A[2, :, 0], A[2, :, 1], A[2, :, 2] = -c[:, 0], -c[:, 1], y[:, 2] - c[:, 2]
-        basis = self._basis[:, :rows]
+        basis = self._basis[:rows]
         turned = self._turn * complex(math.cos(groups.q_r[0]), math.sin(groups.q_r[0]))
-        basis[:, 0], basis[:, 1] = turned.real, turned.imag
+        basis[0], basis[1] = turned.real, turned.imag
         if self._deviation:
             A[3:] = -np.moveaxis(JK, -1, 0)
             mu = self.mu
-            basis[:, 3:5] = mu
-            basis[:, 5] = mu[:, 0] * mu[:, 0]
-            basis[:, 6] = mu[:, 0] * mu[:, 1]
-            basis[:, 7] = mu[:, 1] * mu[:, 1]
+            basis[3:5] = mu
+            np.multiply(mu[0], mu[0], out=basis[5])
+            np.multiply(mu[0], mu[1], out=basis[6])
+            np.multiply(mu[1], mu[1], out=basis[7])
         A = A.reshape(rows, 3 * G)
         # Whitened by each group's Cholesky factor, d^2 = |L^-1 r|^2, folded into A.
-        L, _ = cholesky(S)
-        whitening = np.zeros((G, 3, G, 3))
-        whitening[np.arange(G), :, np.arange(G), :] = np.swapaxes(np.linalg.inv(L), -1, -2)
-        white = basis @ (A @ whitening.reshape(3 * G, 3 * G))
+        whitening, logdet = _whitening(S)
+        white = (A @ whitening).T @ basis
         white *= white
-        d2 = white @ _triple_sums(G)  # sums of three squares, (N, G)
-        logdet = 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)))
+        d2 = white.reshape(G, 3, -1).sum(1)  # sums of three squares, (G, N)
         terms = mixture_log_likelihood(d2, 3, s.outlier_probability, s.outlier_scale)
-        log_lik = terms @ np.ones(G) - 0.5 * (logdet + 3 * G * _LOG_2PI)
+        log_lik = terms.sum(0) - 0.5 * (logdet + 3 * G * _LOG_2PI)
 
         def update(inlier: Array) -> None:
             if self._deviation:
                 self._update_deviation(J, S, inlier, basis, A)
 
-        return d2, log_lik, update
+        return d2.T, log_lik, update
 
     def _likelihood_views(self, groups):
         """Per cell and point d^2 (N, G) and the frame's log-likelihood (N,), single views."""
@@ -318,7 +320,7 @@ class GridFilter:
     ) -> None:
         """Kalman update of every cell's deviation mean with the inlying groups (one gain,
         with the Jacobian J (G, 3, 2) at the deviation of the posterior mean); the model-frame
-        residuals of the cells are ``basis @ A`` ((N, k) and (k, 3G))."""
+        residuals of the cells are ``A^T basis`` ((k, 3G) and (k, N))."""
         J_in = J[inlier]
         k = J_in.shape[0]
         noise = S_g[inlier] - J_in @ self.Sigma @ np.swapaxes(J_in, -1, -2)
@@ -328,15 +330,50 @@ class GridFilter:
         S = H @ self.Sigma @ H.T + R.reshape(3 * k, 3 * k)
         gain = np.linalg.solve(S, H @ self.Sigma).T  # (2, m)
         columns = np.repeat(inlier, 3)
-        self.mu += basis @ (A[:, columns] @ gain.T)
+        self.mu += (A[:, columns] @ gain.T).T @ basis
         Sigma = self.Sigma - gain @ S @ gain.T
         self.Sigma = 0.5 * (Sigma + Sigma.T)
 
 
-@lru_cache(maxsize=16)
-def _triple_sums(G: int) -> Array:
-    """(3G, G): sums each group's three consecutive columns."""
-    return np.repeat(np.eye(G), 3, axis=0)
+def _whitening(S: Array) -> tuple[Array, float]:
+    """Block-diagonal ``L^-T`` of the Cholesky factors L of G covariances (G, 3, 3), (3G, 3G),
+    and the sum of their log determinants.
+
+    The few 3 x 3 factors and inverses are computed in floats (LAPACK's order of operations);
+    a covariance that is not positive definite goes through :func:`cholesky` and its jitter.
+    """
+    G = S.shape[0]
+    whitening = np.zeros((3 * G, 3 * G))
+    logdet = 0.0
+    for g, ((a11, _, _), (a21, a22, _), (a31, a32, a33)) in enumerate(S.tolist()):
+        d1 = a11
+        if not d1 > 0.0:
+            break
+        l11 = math.sqrt(d1)
+        l21, l31 = a21 / l11, a31 / l11
+        d2 = a22 - l21 * l21
+        if not d2 > 0.0:
+            break
+        l22 = math.sqrt(d2)
+        l32 = (a32 - l31 * l21) / l22
+        d3 = a33 - l31 * l31 - l32 * l32
+        if not (d3 > 0.0 and math.isfinite(d3)):
+            break
+        l33 = math.sqrt(d3)
+        m11, m22, m33 = 1.0 / l11, 1.0 / l22, 1.0 / l33
+        m21 = -(l21 * m11) * m22
+        m32 = -(l32 * m22) * m33
+        m31 = -(l31 * m11 + l32 * m21) * m33
+        k = 3 * g
+        whitening[k : k + 3, k : k + 3] = ((m11, m21, m31), (0.0, m22, m32), (0.0, 0.0, m33))
+        logdet += 2.0 * (math.log(l11) + math.log(l22) + math.log(l33))
+    else:
+        return whitening, logdet
+    L, _ = cholesky(S)
+    whitening = np.zeros((G, 3, G, 3))
+    whitening[np.arange(G), :, np.arange(G), :] = np.swapaxes(np.linalg.inv(L), -1, -2)
+    logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum()
+    return whitening.reshape(3 * G, 3 * G), float(logdet)
 
 
 __all__ = ["DEFAULT_CELLS", "GridFilter"]

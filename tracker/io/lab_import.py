@@ -44,14 +44,13 @@ points not found stay missing.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from models.model_file import check_header
+from models.model_file import check_header, read_toml_file
 from models.rotations import wrap_angle
 from tracker.io.recording import VIEWS, FrameLabels, RecordingWriter
 from tracker.io.tables import Table, point_columns, read_table
@@ -156,12 +155,7 @@ def _section(mapping: dict, name: str, kind: str, source: str, required: bool) -
 def load_mapping(path: str | Path) -> dict[str, Any]:
     """The parsed mapping file, its header checked, or one LabImportError."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise LabImportError(f"cannot read mapping file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise LabImportError(f"{path}: malformed TOML: {exc}") from None
+    data = read_toml_file(path, LabImportError, "mapping")
     check_header(data, IMPORT_FORMAT, IMPORT_VERSION, str(path), LabImportError, "mapping")
     data.setdefault("unit", "px")
     if data["unit"] not in UNITS:

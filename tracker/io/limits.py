@@ -78,7 +78,7 @@ def points_in_range(uv: Array, cov: Array) -> Array:
     """
     uv = np.asarray(uv, dtype=float)
     cov = np.asarray(cov, dtype=float)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # 1e300 entries fail the checks below
         a, b, c, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 0], cov[..., 1, 1]
         scale = np.maximum(np.maximum(np.abs(a), np.abs(d)), 1e-300)
         ok = np.all(np.abs(uv) <= MAX_IMAGE_COORDINATE, axis=-1)

@@ -8,13 +8,14 @@ bad input into one clear ``OSError`` / ``ValueError``.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+
+from models.model_file import read_toml_file
 
 Array = np.ndarray
 
@@ -217,12 +218,7 @@ def segmentation_settings_from_dict(
 def load_segmentation_settings(path: str | Path) -> SegmentationSettings:
     """Read the ``[segmentation]`` table of a TOML settings file (defaults for missing keys)."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"cannot read settings file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: malformed TOML: {exc}") from None
+    data = read_toml_file(path, ValueError, "settings")
     fmt = data.get("format", SETTINGS_FORMAT)
     if fmt != SETTINGS_FORMAT:
         raise ValueError(f"{path}: 'format' must be \"{SETTINGS_FORMAT}\", got {fmt!r}")
