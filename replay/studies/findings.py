@@ -29,19 +29,17 @@ class Finding:
     detail: str
 
 
+POINT_COLUMNS = ("variant", "delta_2_deg", "noise_mm", "theta_L1_deg", "theta_L2_deg",
+                 "deflection_mm")  # fmt: skip
+"""The columns of a table row that identify its study point."""
+
+
+def _point(row: dict) -> tuple:
+    return tuple(row[c] for c in POINT_COLUMNS)
+
+
 def _index(rows: list[dict]) -> dict[tuple, dict]:
-    return {
-        (
-            r["variant"],
-            r["delta_2_deg"],
-            r["noise_mm"],
-            r["theta_L1_deg"],
-            r["theta_L2_deg"],
-            r["deflection_mm"],
-            r["method"],
-        ): r
-        for r in rows
-    }
+    return {_point(r) + (r["method"],): r for r in rows}
 
 
 def _median(rows_index: dict, point: tuple, method: str) -> float:
@@ -50,19 +48,7 @@ def _median(rows_index: dict, point: tuple, method: str) -> float:
 
 
 def _points(rows: list[dict]) -> list[tuple]:
-    seen = []
-    for r in rows:
-        p = (
-            r["variant"],
-            r["delta_2_deg"],
-            r["noise_mm"],
-            r["theta_L1_deg"],
-            r["theta_L2_deg"],
-            r["deflection_mm"],
-        )
-        if p not in seen:
-            seen.append(p)
-    return seen
+    return list(dict.fromkeys(_point(r) for r in rows))
 
 
 def _bending(point: tuple) -> float:
