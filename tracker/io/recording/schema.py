@@ -161,7 +161,9 @@ def schema_for_topic(topic: str) -> str | None:
 
 
 def finite_or_none(x) -> float | None:
-    """A float for JSON: None for NaN and infinities (strict JSON has no NaN)."""
+    """A float for JSON: None for None, NaN and infinities (strict JSON has no NaN)."""
+    if x is None:
+        return None
     x = float(x)
     return x if math.isfinite(x) else None
 

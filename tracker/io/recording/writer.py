@@ -255,20 +255,12 @@ class RecordingWriter:
                 self.write_raw(image_topic(view), stamp, encode_image(image, view, stamp))
         labels = labels or FrameLabels()
         truth = {
-            "delta_L_rad": None
-            if frame.delta_L_true_rad is None
-            else finite_or_none(frame.delta_L_true_rad),
-            "delta_1_rad": None
-            if labels.delta_1_true_rad is None
-            else finite_or_none(labels.delta_1_true_rad),
+            "delta_L_rad": finite_or_none(frame.delta_L_true_rad),
+            "delta_1_rad": finite_or_none(labels.delta_1_true_rad),
             "plane": labels.plane,
             "configuration": labels.configuration,
-            "deflection_mm": None
-            if labels.deflection_mm is None
-            else finite_or_none(labels.deflection_mm),
-            "noise_level": None
-            if labels.noise_level is None
-            else finite_or_none(labels.noise_level),
+            "deflection_mm": finite_or_none(labels.deflection_mm),
+            "noise_level": finite_or_none(labels.noise_level),
         }
         self.write_raw(TOPIC_TRUTH, stamp, encode_json(truth))
 
