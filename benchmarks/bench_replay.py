@@ -61,6 +61,7 @@ def bench_markers(directory: Path, configurations: int, load: int = 0) -> None:
         f"markers-only recording: {summary.frames} frames, {summary.joint_samples} joint"
         f" samples at 1 kHz, {summary.bytes / 1e6:.1f} MB (written in {written_s:.1f} s)"
     )
+
     def measure() -> None:
         best: dict[str, float] = {}
         for _ in range(3):

@@ -14,8 +14,8 @@ once for all of them, before the estimator sees it:
 - covariances of the points present: symmetric, positive definite, every variance between
   :data:`MIN_VARIANCE_MM2` and :data:`MAX_VARIANCE_MM2` (image points: the cameras' limits).
 
-A skipped step returns the last estimate held, flagged ``INVALID_INPUT | HELD |
-NO_MEASUREMENT`` (NaN before the first estimate): the estimator's state is untouched, so the
+A skipped step of a filter returns the last estimate held, flagged ``INVALID_INPUT | HELD |
+NO_MEASUREMENT`` (NaN before the first estimate; a per-frame estimator gives NaN): the estimator's state is untouched, so the
 steps after it are those it would have made had the bad observation never come. Covariance
 ``tip_cov_b = 1e-30 I`` (a collapsed filter), ``1e300`` values, an observation stamped a
 billion seconds ahead: all are such skipped steps. Estimators built directly (e.g.
@@ -66,26 +66,27 @@ def _symmetric_in_range(cov: Array, low: float, high: float) -> bool:
         c = np.asarray(cov, dtype=float)
     except (TypeError, ValueError):
         return False
-    n = c.shape[-1] if c.ndim else 0
-    if c.shape != (n, n) or n not in (2, 3):
-        return False
-    m = c.tolist()
-    if not all(math.isfinite(x) for row in m for x in row):
-        return False
-    scale = max(abs(x) for row in m for x in row) or 1.0
-    for i in range(n):
-        if m[i][i] > high:
+    if c.shape == (3, 3):
+        (a, b, c_), (d, e, f), (g, h, i) = c.tolist()
+        if not math.isfinite(a + b + c_ + d + e + f + g + h + i):  # a NaN or an infinity
             return False
-        for j in range(i):
-            if abs(m[i][j] - m[j][i]) > 1e-9 * scale:
-                return False
-    a, b, d = m[0][0] - low, m[0][1], m[1][1] - low
-    if not (a > 0.0 and a * d - b * b > 0.0):
-        return False
-    if n == 2:
-        return True
-    c_, e, f = m[0][2], m[1][2], m[2][2] - low
-    return a * (d * f - e * e) - b * (b * f - e * c_) + c_ * (b * e - d * c_) > 0.0
+        tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
+        if abs(b - d) > tol or abs(c_ - g) > tol or abs(f - h) > tol or max(a, e, i) > high:
+            return False
+        a, e, i = a - low, e - low, i - low
+        minor = a * e - b * b
+        return a > 0.0 and minor > 0.0 and a * (e * i - f * f) - b * (b * i - f * c_) + c_ * (
+            b * f - e * c_
+        ) > 0.0
+    if c.shape == (2, 2):
+        (a, b), (d, e) = c.tolist()
+        if not math.isfinite(a + b + d + e):
+            return False
+        tol = 1e-9 * max(abs(a), abs(e), 1e-300)
+        if abs(b - d) > tol or max(a, e) > high:
+            return False
+        return a - low > 0.0 and (a - low) * (e - low) - b * b > 0.0
+    return False
 
 
 def _positive_definite(a: Array) -> bool:
@@ -107,15 +108,14 @@ def _points(points: Array | None, shape: tuple[int, ...], limit: float) -> list[
         return None
     present = []
     for row in points.reshape(-1, shape[-1]).tolist():
-        finite = [math.isfinite(x) for x in row]
-        if all(finite):
-            if max(abs(x) for x in row) > limit:
+        if math.isfinite(sum(row)):
+            if max(map(abs, row)) > limit:
                 return None
             present.append(True)
-        elif any(finite) or any(math.isinf(x) for x in row):
-            return None
-        else:
+        elif all(map(math.isnan, row)):
             present.append(False)
+        else:  # partly missing, or an infinity
+            return None
     return present
 
 
@@ -268,10 +268,12 @@ class CheckedEstimator:
         problem = observation_problem(observation, self.n_markers)
         if problem is not None:
             return self._skip(observation, problem)
-        if self.check_time and not self._time_ok(t):
+        if not self.check_time:  # a per-frame estimator: nothing carried from step to step
+            return self.inner.step(observation)
+        if not self._time_ok(t):
             return self._skip(observation, "time not after the last frame or too far ahead")
         estimate = self.inner.step(observation)
         self._last_time_s = t
-        if estimate.valid:
+        if math.isfinite(estimate.delta_L_rad) and math.isfinite(estimate.std_rad):
             self._last = estimate
         return estimate

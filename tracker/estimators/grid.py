@@ -38,6 +38,7 @@ import numpy as np
 import scipy.fft
 
 from models.catheter import Catheter
+from tracker.estimators._linalg import cholesky, spd_inverse
 from tracker.estimators.deviation import (
     ShapeExpansion,
     deviation_decay,
@@ -57,7 +58,6 @@ from tracker.estimators.measurement import (
     wrap,
 )
 from tracker.estimators.ukf import check_observation, observation_groups
-from tracker.estimators.ukf_core import cholesky, spd_inverse
 from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Estimate, Flag, Observation
 

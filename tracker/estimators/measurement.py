@@ -204,9 +204,8 @@ class FrameGroups:
         if deviation is not None:
             basis = expansion_basis(sigmas[..., deviation : deviation + 2])
             JK = (self.JK if whole else self.JK[b]).reshape(r, -1, 5)
-            shape = c[:, None] + (basis @ np.swapaxes(JK, -1, -2)).reshape(
-                (r, S) + c.shape[1:]
-            )
+            deviated = basis @ np.swapaxes(JK, -1, -2)
+            shape = c[:, None] + deviated.reshape((r, S) + c.shape[1:])
         else:
             shape = np.broadcast_to(c[:, None], (r, S) + c.shape[1:])
         if rate is not None and self.has_velocity_group:

@@ -33,16 +33,16 @@ import math
 import numpy as np
 
 from models.catheter import Catheter
-from tracker.estimators.deviation import ShapeExpansion
-from tracker.estimators.measurement import ViewGroups, assemble_groups
-from tracker.estimators.ukf_core import (
+from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
     CovarianceError,
-    FilterBank,
     sigma_sqrt,
     spd_inverse,
 )
+from tracker.estimators.deviation import ShapeExpansion
+from tracker.estimators.measurement import ViewGroups, assemble_groups
+from tracker.estimators.ukf_core import FilterBank
 from tracker.estimators.ukf_settings import UKFSettings, gate_threshold
 from tracker.types import Estimate, Flag, Observation
 
