@@ -15,8 +15,9 @@ once for all of them, before the estimator sees it:
   :data:`MIN_VARIANCE_MM2` and :data:`MAX_VARIANCE_MM2` (image points: the cameras' limits).
 
 A skipped step of a filter returns the last estimate held, flagged ``INVALID_INPUT | HELD |
-NO_MEASUREMENT`` (NaN before the first estimate; a per-frame estimator gives NaN): the estimator's state is untouched, so the
-steps after it are those it would have made had the bad observation never come. Covariance
+NO_MEASUREMENT`` (NaN before the first estimate; a per-frame estimator gives NaN): the
+estimator's state is untouched, so the steps after it are those it would have made had the
+bad observation never come. Covariance
 ``tip_cov_b = 1e-30 I`` (a collapsed filter), ``1e300`` values, an observation stamped a
 billion seconds ahead: all are such skipped steps. Estimators built directly (e.g.
 ``BendingPlaneUKF(...)``) are not wrapped and raise on what they cannot use.
