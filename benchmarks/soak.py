@@ -199,7 +199,7 @@ def parse_summary(text: str) -> dict:
         line = m.group(1)
         words = r"(\d+) (stale|duplicate|received|used)"
         counts = {what: int(n) for n, what in re.findall(words, line)}
-        tail = line.split("malformed:", 1)[-1] if "malformed:" in line else ""
+        tail = line.split("dropped by reason:", 1)[-1] if "dropped by reason:" in line else ""
         for what, n in re.findall(r"([a-z-]+) (\d+)", tail):
             counts[what] = int(n)
         out[label] = counts

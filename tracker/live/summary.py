@@ -112,7 +112,7 @@ class LiveSummary:
                 bad = ", ".join(f"{k} {v}" for k, v in sorted(counts.malformed.items())) or "none"
                 out.append(
                     f"  {label} datagrams: {counts.received} received, {counts.accepted} used,"
-                    f" {counts.stale} stale, {counts.duplicate} duplicate, malformed: {bad}"
+                    f" {counts.stale} stale, {counts.duplicate} duplicate, dropped by reason: {bad}"
                     + (f", {counts.restarts} sender restarts" if counts.restarts else "")
                 )
         if self.estimator_errors:
