@@ -237,6 +237,23 @@ def test_batched_filter_is_the_ukf_trial_by_trial(delta_2, name):
     assert_agree(batched(catheter, SETTINGS[name], data), expected)
 
 
+def test_the_live_step_is_a_batch_of_one_trial():
+    """The live filter's step (a bank of one, its views-not-gathers path) equals
+    run_ukf_batch with one trial, trial by trial, on the random trials (outliers, missing
+    points, restarts, jump hypotheses)."""
+    catheter, data, expected, _ = reference_run("default", 0.0)
+    time, rest = data[0], data[1:]
+    flags = expected[2]
+    # The trials with a restart, a rejected outlier or a missing point, and a few others.
+    eventful = np.flatnonzero(
+        np.any((flags & (Flag.OUTLIER_REJECTED | Flag.PARTIAL | Flag.HELD).value) != 0, axis=1)
+    )
+    trials = np.union1d(eventful[:24], np.arange(4))
+    for i in trials:
+        one = batched(catheter, SETTINGS["default"], (time, *(a[i : i + 1] for a in rest)))
+        assert_agree(one, tuple(a[i : i + 1] for a in expected))
+
+
 def test_the_random_trials_exercise_the_rules():
     """The agreement tests' data and settings go through every rule of the filter."""
     seen = set()

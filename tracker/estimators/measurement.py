@@ -667,6 +667,7 @@ __all__ = [
     "fit_frame",
     "group_coefficients",
     "inlier_probability",
+    "is_every_trial",
     "assemble_groups",
     "jump_probability",
     "mixture_log_likelihood",
