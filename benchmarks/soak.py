@@ -50,13 +50,11 @@ from replay.simulation.simulator import (  # noqa: E402
     NoiseSettings,
     default_scene,
     simulate_frames,
-    sinusoidal,
 )
 from replay.simulation.sources import (  # noqa: E402
-    SESSION_AMPLITUDE,
-    SESSION_MEAN,
     SESSION_PERIOD_S,
     session_joints,
+    session_trajectory,
 )
 from tracker.io.datagrams import (  # noqa: E402
     JOINT_STRUCT,
@@ -221,13 +219,7 @@ def main(argv=None) -> int:
     catheter = default_catheter()
     rig = default_render_rig()
     scene = default_scene(catheter, rig)
-    trajectory = sinusoidal(
-        mean=list(SESSION_MEAN),
-        amplitude=list(SESSION_AMPLITUDE),
-        period_s=list(SESSION_PERIOD_S),
-        duration_s=PERIOD_S,
-        frame_rate_hz=args.fps,
-    )
+    trajectory = session_trajectory(PERIOD_S, args.fps)
     rng = np.random.default_rng(args.seed)
     pool = simulate_frames(
         scene,

@@ -72,6 +72,17 @@ def session_joints(time_s: float | Array) -> tuple[Array, Array]:
     return mean + amp * np.sin(omega * t), amp * omega * np.cos(omega * t)
 
 
+def session_trajectory(duration_s: float, frame_rate_hz: float) -> JointTrajectory:
+    """The demo's commanded joints at the frame times (:func:`session_joints` sampled)."""
+    return sinusoidal(
+        mean=list(SESSION_MEAN),
+        amplitude=list(SESSION_AMPLITUDE),
+        period_s=list(SESSION_PERIOD_S),
+        duration_s=duration_s,
+        frame_rate_hz=frame_rate_hz,
+    )
+
+
 def simulated_session(
     duration_s: float = 20.0,
     frame_rate_hz: float = 20.0,
@@ -94,13 +105,7 @@ def simulated_session(
     catheter = default_catheter() if catheter is None else catheter
     rig = default_orthographic_rig() if rig is None else rig
     scene = default_scene(catheter, rig)
-    trajectory = sinusoidal(
-        mean=list(SESSION_MEAN),
-        amplitude=list(SESSION_AMPLITUDE),
-        period_s=list(SESSION_PERIOD_S),
-        duration_s=duration_s,
-        frame_rate_hz=frame_rate_hz,
-    )
+    trajectory = session_trajectory(duration_s, frame_rate_hz)
     truth = torsion_windup(trajectory.q[:, 0], play_rad=np.radians(60), offset_rad=np.radians(120))
     frames = simulate_frames(
         scene, trajectory, truth, NoiseSettings(sigma=noise), np.random.default_rng(seed)
