@@ -17,7 +17,7 @@ sum: the held estimate and a restarted one), each a UKF. Per frame:
    one half are rejected, the others fused in one UKF update. The velocity has its own gate
    and its own model error, and a finite-difference velocity is offered only after a step
    that fused no tip.
-3. **Restart**: when the leading hypothesis rejects a whole frame whose closed form is
+3. **Restart**: when the leading hypothesis rejects any group of a frame whose closed form is
    informative, unambiguous (not nearly straight relative to noise plus model error) and
    self-consistent, a hypothesis starts there with prior weight ``jump probability`` times
    the frame's marginal likelihood under a uniform angle, against the held hypotheses'
