@@ -510,9 +510,10 @@ def _add_track(sub) -> None:
     )
     src.add_argument(
         "--backgrounds",
-        nargs=2,
-        metavar=("FRONT", "SIDE"),
-        help="images of the empty scene, one per camera (needed to segment images)",
+        nargs="+",
+        metavar="IMAGE",
+        help="images of the empty scene, one per view in the rig's order (needed to segment"
+        " images)",
     )
     src.add_argument("--segmentation", metavar="FILE", help="segmentation settings (TOML)")
     joints = p.add_argument_group("joint values")

@@ -144,8 +144,12 @@ def _scene(args: argparse.Namespace, recording: Recording | None) -> tuple[Scene
 
 
 def _segmenter(args: argparse.Namespace, scene: Scene) -> PairSegmenter:
-    if args.backgrounds is None:
-        raise ValueError("segmenting images needs the empty scene: --backgrounds FRONT SIDE")
+    names = scene.rig.names
+    if args.backgrounds is None or len(args.backgrounds) != len(names):
+        raise ValueError(
+            "segmenting images needs one image of the empty scene per view:"
+            f" --backgrounds {' '.join(n.upper() for n in names)}"
+        )
     backgrounds = tuple(read_grayscale(path) for path in args.backgrounds)
     settings = (
         load_segmentation_settings(args.segmentation)
