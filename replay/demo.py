@@ -184,6 +184,7 @@ class SimulatedController:
     ) -> None:
         self.rate_hz = float(rate_hz)
         self.received = self.valid = self.malformed = self.sent = 0
+        self.lost: str | None = None  # why the counts did not come back, if they did not
         context = multiprocessing.get_context("spawn")  # no fork of a threaded process
         self._conn, child = context.Pipe()
         self._process = context.Process(
@@ -217,8 +218,10 @@ class SimulatedController:
                 counts = self._conn.recv()
                 self.received, self.valid = counts["received"], counts["valid"]
                 self.malformed, self.sent = counts["malformed"], counts["sent"]
-        except (OSError, EOFError):
-            pass
+            else:
+                self.lost = f"the controller process did not answer within {timeout_s + 5.0:g} s"
+        except (OSError, EOFError) as exc:
+            self.lost = f"the controller process ended ({type(exc).__name__})"
         self._process.join(2.0)
         if self._process.is_alive():
             self._process.terminate()
@@ -385,10 +388,12 @@ def report_lines(
     ]
     if joints is not None:
         lines.append(f"| joint datagrams received / used | {joints.received} / {joints.accepted} |")
-    lines += [
-        f"| estimates received by the controller | {controller.received} of {estimates_sent}"
-        f" sent ({controller.valid} valid) |",
-    ]
+    received = (
+        f"{controller.received} of {estimates_sent} sent ({controller.valid} valid)"
+        if controller.lost is None
+        else f"unknown: {controller.lost}"
+    )
+    lines.append(f"| estimates received by the controller | {received} |")
     for name in sorted(set(summary.sink_dropped) | set(summary.sink_stalls)):
         dropped, stalls = summary.sink_dropped.get(name, 0), summary.sink_stalls.get(name, 0)
         lines.append(f"| {name}: frames dropped / waits (behind) | {dropped} / {stalls} |")
