@@ -15,8 +15,10 @@ from models.imaging import default_orthographic_rig
 from models.rotations import wrap_angle
 from tests.tracker.test_ukf import BENT, DT_S, EXACT, simulate, view_frame
 from tracker.estimators import make_estimator
+from tracker.estimators.deviation import ShapeExpansion
 from tracker.estimators.grid import GridFilter
-from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings
+from tracker.estimators.measurement import group_coefficients, trig_table
+from tracker.estimators.ukf import BendingPlaneUKF, UKFSettings, observation_groups
 from tracker.types import Flag, Observation
 
 
@@ -35,6 +37,62 @@ def test_one_frame_from_a_uniform_prior_is_the_closed_form(delta_2):
     assert estimate.valid and estimate.flags == Flag.NONE
     assert abs(wrap_angle(estimate.delta_L_rad - closed.delta_L_rad)) < 0.1 * closed.std_rad
     assert estimate.std_rad == pytest.approx(closed.std_rad, rel=0.05)
+
+
+def test_one_frame_posterior_is_the_groups_trigonometric_cost():
+    """No deviation, no heavy tail: the log posterior of one frame from a uniform prior is
+    minus half the summed d^2 of its groups, the trigonometric polynomials of
+    ``group_coefficients``, on every cell (up to a constant)."""
+    catheter = default_catheter(np.pi / 2)
+    frame = simulate(catheter, BENT, 2.9, np.random.default_rng(6), sigma_mm=3.0)[0]
+    grid = GridFilter(catheter, UKFSettings(**EXACT), cells=512)
+    grid.step(frame)
+    groups, _ = observation_groups(ShapeExpansion(catheter), frame, np.asarray(frame.q))
+    W = np.linalg.inv(groups.R_bar)
+    cost = group_coefficients(groups.y, groups.c, W, groups.q_r)[0].sum(0) @ trig_table(grid.angles)
+    log_p = np.log(grid.p)
+    np.testing.assert_allclose(log_p - log_p.max(), -0.5 * (cost - cost.min()), atol=1e-9)
+
+
+@pytest.mark.parametrize("center", [np.pi - 0.01, -np.pi, -np.pi + 0.004, 0.3, -2.0])
+def test_moments_are_the_circular_mean_and_the_wrapped_spread(center):
+    """Also for a posterior across the seam at +-pi, with mass on the far side too."""
+    grid = GridFilter(default_catheter(), cells=256)
+    p = np.exp(-0.5 * (wrap_angle(grid.angles - center) / 0.2) ** 2) + 1e-3
+    grid.p = p / p.sum()
+    mean, std = grid.moments()
+    expected = np.angle(grid.p @ np.exp(1j * grid.angles))
+    spread = wrap_angle(grid.angles - expected)
+    assert abs(wrap_angle(mean - expected)) < 1e-12
+    assert std**2 == pytest.approx(grid.p @ spread**2 + grid.cell_rad**2 / 12, rel=1e-12)
+
+
+def test_prediction_convolves_and_moment_matches_the_deviation_means():
+    """Without a measurement, a step convolves p with the random walk's wrapped normal (here
+    as a matrix), mixes in a jump's uniform density and gives every cell the deviation mean
+    of the convolved joint density (decayed with time; a jump lands on the prior mean 0)."""
+    catheter = default_catheter()
+    settings = UKFSettings(process_noise_rad2_s=0.5)
+    grid = GridFilter(catheter, settings, cells=64)
+    frame = simulate(catheter, BENT, 0.3, np.random.default_rng(3), sigma_mm=0.1)[0]
+    grid.step(frame)
+    assert grid.initialised
+    rng = np.random.default_rng(0)
+    p = rng.uniform(0.1, 1.0, grid.cells)
+    grid.p = p / p.sum()
+    grid.mu[:] = rng.normal(0.0, 0.1, (2, grid.cells))
+    before_p, before_mu = grid.p.copy(), grid.mu.copy()
+    dt = 0.2
+    grid.step(Observation(time_s=frame.time_s + dt, q=frame.q))
+    offsets = wrap_angle(grid.angles[None] - grid.angles[:, None])
+    kernel = sum(np.exp(-0.5 * (offsets + 2 * np.pi * k) ** 2 / (0.5 * dt)) for k in (-1, 0, 1))
+    kernel /= kernel.sum(axis=1, keepdims=True)
+    jump = -np.expm1(-settings.jump_rate_per_s * dt)
+    decay = np.exp(-settings.deviation_rate_per_s * dt)
+    expected_p = (1 - jump) * kernel @ before_p + jump / grid.cells
+    expected_mu = decay * (1 - jump) * (before_p * before_mu) @ kernel.T / expected_p
+    np.testing.assert_allclose(grid.p, expected_p, rtol=1e-12)
+    np.testing.assert_allclose(grid.mu, expected_mu, rtol=1e-10)
 
 
 @pytest.mark.parametrize(
