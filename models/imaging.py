@@ -38,7 +38,7 @@ def _checked(x, name: str, shape: tuple[int, ...], batched: bool = True) -> Arra
     if x.shape[max(x.ndim - len(shape), 0) :] != shape or (not batched and x.ndim != len(shape)):
         want = ", ".join(["..."] * batched + [str(n) for n in shape])
         raise ValueError(f"{name} must have shape ({want}), got {x.shape}")
-    if not np.all(np.isfinite(x)):
+    if not np.isfinite(x).all():
         raise ValueError(f"{name} contains non-finite values (NaN or inf)")
     return x
 
@@ -63,16 +63,27 @@ def _unit(v: Array, name: str) -> Array:
     return v / norm
 
 
-def _covariance(cov, name: str) -> Array:
-    C = _checked(cov, name, (2, 2))
-    scale = max(np.abs(C).max(initial=0.0), 1e-300)
-    if np.abs(C - np.swapaxes(C, -1, -2)).max(initial=0.0) > 1e-9 * scale:
-        raise ValueError(f"{name} must be symmetric")
-    if C.size and np.linalg.eigvalsh(C).min() < -1e-12 * scale:
-        raise ValueError(
-            f"{name} must be positive semi-definite (a scalar sigma goes through"
+def _covariance_problem(C: Array, scale) -> str | None:
+    """Why covariances C (..., 2, 2) are not symmetric positive semi-definite, to a tolerance
+    relative to ``scale`` (which broadcasts against ``C[..., 0, 0]``); None if they are."""
+    a, b, c, d = C[..., 0, 0], C[..., 0, 1], C[..., 1, 0], C[..., 1, 1]
+    if (np.abs(b - c) > 1e-9 * scale).any():
+        return "must be symmetric"
+    # The smaller eigenvalue of each 2x2 in closed form, from its lower triangle as eigvalsh
+    # would read it: a tenth of eigvalsh's cost, on every frame of the live loop.
+    if (0.5 * (a + d) - np.hypot(0.5 * (a - d), c) < -1e-12 * scale).any():
+        return (
+            "must be positive semi-definite (a scalar sigma goes through"
             " isotropic_covariance(sigma))"
         )
+    return None
+
+
+def _covariance(cov, name: str) -> Array:
+    C = _checked(cov, name, (2, 2))
+    problem = _covariance_problem(C, np.abs(C).max(initial=1e-300))
+    if problem is not None:
+        raise ValueError(f"{name} {problem}")
     return C
 
 
@@ -187,6 +198,7 @@ class PinholeView:
     dist: Array | None = None
     image_size: tuple[int, int] = (640, 480)
     _rvec: Array = field(init=False, repr=False)
+    _distorted: bool = field(init=False, repr=False)  # any non-zero distortion coefficient
 
     def __post_init__(self) -> None:
         K = _checked(self.K, "K", (3, 3), batched=False)
@@ -205,6 +217,7 @@ class PinholeView:
         object.__setattr__(self, "dist", _frozen(dist))
         object.__setattr__(self, "image_size", size)
         object.__setattr__(self, "_rvec", cv2.Rodrigues(np.array(R))[0])
+        object.__setattr__(self, "_distorted", bool(np.any(dist)))
 
     @classmethod
     def look_at(
@@ -246,24 +259,15 @@ class PinholeView:
         """Optical centre in {W}, mm, shape (3,)."""
         return -self.R_cam_w.T @ self.t_cam_w
 
-    def _project(self, points_w) -> tuple[Array, Array]:
-        """Pixels (..., 2) and d pixel / d x_cam (..., 2, 3), px/mm."""
-        x = _checked(points_w, "points_w", (3,))
-        depth_mm = x @ self.R_cam_w[2] + self.t_cam_w[2]
-        if np.any(depth_mm <= 0.0):
-            raise ValueError(
-                f"{np.count_nonzero(depth_mm <= 0.0)} point(s) behind the camera (smallest depth"
-                f" {depth_mm.min():.6g} mm); a pinhole view needs depth > 0"
-            )
+    def _project(self, x: Array) -> tuple[Array, Array]:
+        """Pixels (..., 2) and d pixel / d x_cam (..., 2, 3), px/mm, of points (..., 3) in
+        {W} that went through ``_checked`` already."""
+        _check_in_front(x @ self.R_cam_w[2] + self.t_cam_w[2])
         batch = x.shape[:-1]
         if x.size == 0:
             return np.zeros(batch + (2,)), np.zeros(batch + (2, 3))
         pixels, jac = cv2.projectPoints(
-            np.ascontiguousarray(x.reshape(-1, 3)),
-            self._rvec,
-            np.array(self.t_cam_w),
-            np.array(self.K),
-            np.array(self.dist),
+            np.ascontiguousarray(x.reshape(-1, 3)), self._rvec, self.t_cam_w, self.K, self.dist
         )
         # OpenCV's Jacobian columns 3:6 are d pixel / d tvec, which is d pixel / d x_cam.
         return pixels.reshape(batch + (2,)), jac[:, 3:6].reshape(batch + (2, 3))
@@ -273,16 +277,16 @@ class PinholeView:
 
         Raises ValueError if a point is not strictly in front of the camera.
         """
-        return self._project(points_w)[0]
+        return self._project(_checked(points_w, "points_w", (3,)))[0]
 
     def projection_jacobian(self, points_w) -> Array:
         """d pixel / d x_w, shape (..., 2, 3), px/mm, analytic (distortion included)."""
-        return self._project(points_w)[1] @ self.R_cam_w
+        return self._project(_checked(points_w, "points_w", (3,)))[1] @ self.R_cam_w
 
     def undistort(self, pixels) -> Array:
         """Ideal (distortion-free) pixels in the px of K, shape (..., 2), of observed pixels."""
         p = _checked(pixels, "pixels", (2,))
-        if not np.any(self.dist) or p.size == 0:
+        if not self._distorted or p.size == 0:
             return p.copy()
         ideal = cv2.undistortPoints(
             np.ascontiguousarray(p.reshape(-1, 1, 2)),
@@ -295,6 +299,66 @@ class PinholeView:
 
 
 View = OrthographicPlane | PinholeView
+
+
+def _check_in_front(depth_mm: Array) -> None:
+    """ValueError unless every depth along a camera's optical axis is positive, mm."""
+    if (depth_mm <= 0.0).any():
+        raise ValueError(
+            f"{np.count_nonzero(depth_mm <= 0.0)} point(s) behind the camera (smallest depth"
+            f" {depth_mm.min():.6g} mm); a pinhole view needs depth > 0"
+        )
+
+
+def _stack_views(arrays: list[Array], core: tuple[int, ...]) -> Array:
+    """Per-view arrays (..., *core) on one views axis before ``core``: (..., V, *core), their
+    batch shapes broadcast (or ValueError)."""
+    batch = arrays[0].shape[: -len(core)]
+    if any(a.shape[: -len(core)] != batch for a in arrays):
+        arrays = np.broadcast_arrays(*arrays)
+        batch = arrays[0].shape[: -len(core)]
+    stacked = np.concatenate(arrays, axis=-len(core))  # (..., V * core[0], *core[1:])
+    return stacked.reshape(batch + (len(arrays), *core))
+
+
+@dataclass(frozen=True, eq=False)
+class _Cameras:
+    """The cameras of a pinhole rig stacked view by view, for reconstruction vectorised over
+    the views."""
+
+    principal: Array  # (V, 2): cx, cy, px
+    focal: Array  # (V, 2): fx, fy, px
+    inverse_focal: Array  # (V, 2, 2): diag(1 / fx, 1 / fy), 1/px
+    R_cam_w: Array  # (V, 3, 3)
+    t_cam_w: Array  # (V, 3), mm
+    distorted: tuple[int, ...]  # the views with distortion
+    # Pieces of R_cam_w and t_cam_w in the shapes the DLT rows are made of: the first two
+    # rows (V, 2, 3) and the third (V, 1, 3); the first two entries (V, 2), the third (V, 1).
+    R_12: Array = field(init=False)
+    r_3: Array = field(init=False)
+    t_12: Array = field(init=False)
+    t_3: Array = field(init=False)
+
+    def __post_init__(self) -> None:
+        for name, value in (
+            ("R_12", self.R_cam_w[:, :2]),
+            ("r_3", self.R_cam_w[:, 2:]),
+            ("t_12", self.t_cam_w[:, :2]),
+            ("t_3", self.t_cam_w[:, 2:]),
+        ):
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def of(cls, views: tuple[PinholeView, ...]) -> _Cameras:
+        focal = np.stack([np.diag(v.K)[:2] for v in views])
+        return cls(
+            principal=_frozen(np.stack([v.K[:2, 2] for v in views])),
+            focal=_frozen(focal),
+            inverse_focal=_frozen(np.eye(2) / focal[:, None, :]),
+            R_cam_w=_frozen(np.stack([v.R_cam_w for v in views])),
+            t_cam_w=_frozen(np.stack([v.t_cam_w for v in views])),
+            distorted=tuple(i for i, v in enumerate(views) if v._distorted),
+        )
 
 
 # ------------------------------------------------------------------------------------- rig
@@ -321,7 +385,7 @@ class Rig:
         follows this order.
     """
 
-    __slots__ = ("views", "names", "_M", "_subsets")
+    __slots__ = ("views", "names", "_M", "_M_views", "_cameras", "_subsets")
 
     def __init__(self, *views: View, names=None) -> None:
         if len(views) == 1 and isinstance(views[0], list | tuple):
@@ -361,6 +425,9 @@ class Rig:
             U = np.concatenate([v.R_w_view[:, :2] for v in views], axis=1)
             M = np.linalg.solve(sum(v.projector_w for v in views), U)
             object.__setattr__(self, "_M", _frozen(M))
+            # M_v = M[:, 2v:2v+2], the columns of M of view v, shape (V, 3, 2).
+            object.__setattr__(self, "_M_views", _frozen(M.reshape(3, -1, 2).swapaxes(0, 1)))
+            object.__setattr__(self, "_cameras", None)
         else:
             centres = [v.center_w for v in views]
             baseline_mm = max(
@@ -372,6 +439,8 @@ class Rig:
                     f" (coincident, or baseline below {MIN_BASELINE_MM} mm)"
                 )
             object.__setattr__(self, "_M", None)
+            object.__setattr__(self, "_M_views", None)
+            object.__setattr__(self, "_cameras", _Cameras.of(views))
 
     def __setattr__(self, name, value):
         raise AttributeError("a Rig is immutable")
@@ -456,47 +525,11 @@ class Rig:
             raise ValueError(f"expected image points for {len(self.views)} views, got {len(uv)}")
         uv = [_checked(u, f"uv_{n}", (2,)) for u, n in zip(uv, self.names, strict=True)]
         try:
-            batch = np.broadcast_shapes(*(u.shape[:-1] for u in uv))
+            stacked = _stack_views(uv, (2,))
         except ValueError:
             shapes = ", ".join(f"{n} {u.shape}" for n, u in zip(self.names, uv, strict=True))
             raise ValueError(f"image point batch shapes do not broadcast: {shapes}") from None
-        uv = [np.broadcast_to(u, batch + (2,)) for u in uv]
-        if self._M is not None:
-            return np.concatenate(uv, axis=-1) @ self._M.T
-        rows, rhs = [], []
-        for view, u in zip(self.views, uv, strict=True):
-            m = (view.undistort(u) - view.K[:2, 2]) / np.diag(view.K)[:2]  # normalised coords
-            R, t = view.R_cam_w, view.t_cam_w
-            # x_cam[:2] = m x_cam[2] is linear in x: (m r_3 - r_12) x = t_12 - m t_3.
-            rows.append(m[..., :, None] * R[2] - R[:2])
-            rhs.append(t[:2] - m * t[2])
-        A, b = np.concatenate(rows, axis=-2), np.concatenate(rhs, axis=-1)
-        U, s, Vt = np.linalg.svd(A, full_matrices=False)
-        parallel = s[..., -1] <= 1e-12 * s[..., 0]
-        if np.any(parallel):
-            raise ValueError(
-                f"cannot triangulate {np.count_nonzero(parallel)} point(s): their viewing rays"
-                " are parallel (a point on the line through the camera centres?)"
-            )
-        y = np.einsum("...ji,...j->...i", U, b) / s
-        return np.einsum("...ji,...j->...i", Vt, y)
-
-    def _lateral_model(self, view: View, points_w: Array, cov: Array) -> tuple[Array, Array]:
-        """First-order model ``e = A dx`` of the residual that ``reconstruct`` minimises.
-
-        For a plane e is the in-plane error, mm (A = U^T). For a camera the linear
-        triangulation minimises ``Z (m - x_cam[:2] / Z)``: the offset in the fronto-parallel
-        plane at the point's depth, mm, which is ``L^-1 dp`` for a pixel error dp, where L is
-        the lateral block ``d pixel / d x_cam[:2]`` of the projection Jacobian. Returns A
-        (..., 2, 3) and the covariance of e (..., 2, 2), mm^2.
-        """
-        if isinstance(view, OrthographicPlane):
-            return view.projection_jacobian(points_w), cov
-        J_cam = view._project(points_w)[1]
-        L = J_cam[..., :2]
-        A = np.linalg.solve(L, J_cam) @ view.R_cam_w
-        L_inv_cov = np.linalg.solve(L, cov)
-        return A, np.linalg.solve(L, np.swapaxes(L_inv_cov, -1, -2))
+        return self._triangulate(stacked)
 
     def reconstruction_covariance(self, points_w, *covs) -> Array:
         """3-D covariance of reconstructed points from the 2-D noise of each view.
@@ -518,28 +551,106 @@ class Rig:
         Notes
         -----
         Every reconstruction is, to first order, the unweighted least-squares solution of
-        ``A_v dx = e_v`` over the views v (see ``_lateral_model``), so
-        ``Sigma = H^-1 (sum_v A_v^T C_v A_v) H^-1`` with ``H = sum_v A_v^T A_v``. For planes
-        this is exact and equals ``M blockdiag(C_1, ..., C_n) M^T`` with M the
-        :meth:`reconstruction_matrix`. For cameras it is first order in the noise; it equals
-        ``(J^T W J)^-1`` (J the stacked pixel Jacobians, W the inverse noise covariance, i.e.
-        the bound of the optimal estimator) only when the noise is the same in every view in
-        the sense of the lateral error, and is never smaller.
+        ``A_v dx = e_v`` over the views v, so ``Sigma = H^-1 (sum_v A_v^T C_v A_v) H^-1``
+        with ``H = sum_v A_v^T A_v`` and C_v the covariance of e_v. For a plane e is the
+        in-plane error, mm (A = U^T, C the image noise): this is exact and equals
+        ``M blockdiag(C_1, ..., C_n) M^T`` with M the :meth:`reconstruction_matrix`, which is
+        how it is computed. For a camera the linear triangulation minimises
+        ``Z (m - x_cam[:2] / Z)``: the offset in the fronto-parallel plane at the point's
+        depth, mm, ``L^-1 dp`` for a pixel error dp, L the lateral block of the projection
+        Jacobian ``J = d pixel / d x_cam``. As ``J = K_2 D [I | -n] / Z`` (n = x_cam[:2] / Z,
+        D the distortion's Jacobian, K_2 the focal lengths), ``L^-1 J = [I | -n]``: A is
+        ``[I | -n] R_cam_w`` whatever the distortion, and ``L^-1 = Z K_2^-1`` without
+        distortion (OpenCV's Jacobian is needed only for the noise of a distorted camera).
+        This is first order in the noise; it equals ``(J^T W J)^-1`` (J the stacked pixel
+        Jacobians, W the inverse noise covariance, i.e. the bound of the optimal estimator)
+        only when the noise is the same in every view in the sense of the lateral error, and
+        is never smaller.
         """
         if len(covs) != len(self.views):
             raise ValueError(f"expected covariances for {len(self.views)} views, got {len(covs)}")
         x = _checked(points_w, "points_w", (3,))
-        H = np.zeros(x.shape[:-1] + (3, 3))
-        N = np.zeros(())
-        for view, cov, name in zip(self.views, covs, self.names, strict=True):
-            A, C = self._lateral_model(view, x, _covariance(cov, f"cov_{name}"))
-            A_T = np.swapaxes(A, -1, -2)
-            H = H + A_T @ A
-            N = N + A_T @ C @ A
-        H_inv_N = np.linalg.solve(H, N)
-        cov_w = np.linalg.solve(H, np.swapaxes(H_inv_N, -1, -2))
-        return 0.5 * (cov_w + np.swapaxes(cov_w, -1, -2))
+        covs = [_covariance(c, f"cov_{n}") for c, n in zip(covs, self.names, strict=True)]
+        return self._propagate(x, _stack_views(covs, (2, 2)))
 
+    def reconstruct_with_covariance(self, uv, cov) -> tuple[Array, Array]:
+        """:meth:`reconstruct`, then :meth:`reconstruction_covariance` of the points, from
+        the views' image points and noise stacked view by view (the live loop's path: one
+        check and one vectorised computation for all views).
+
+        Parameters
+        ----------
+        uv : array, shape (..., n_views, 2)
+            Image points of every view, in the rig's order.
+        cov : array, shape (..., n_views, 2, 2)
+            Their noise covariances (each view checked against its own scale, as
+            :meth:`reconstruction_covariance` does).
+
+        Returns
+        -------
+        points_w : array, shape (..., 3)
+        cov_w : array, shape (..., 3, 3)
+        """
+        n_views = len(self.views)
+        uv = _checked(uv, "uv", (n_views, 2))
+        cov = _checked(cov, "cov", (n_views, 2, 2))
+        scale = np.abs(cov).max(axis=(*range(cov.ndim - 3), -2, -1), initial=1e-300)  # per view
+        if _covariance_problem(cov, scale) is not None:
+            for v, name in enumerate(self.names):  # raises for the first bad view
+                _covariance(cov[..., v, :, :], f"cov_{name}")
+        points_w = self._triangulate(uv)
+        return points_w, self._propagate(points_w, cov)
+
+    def _triangulate(self, uv: Array) -> Array:
+        """Points (..., 3) in {W} from checked image points (..., V, 2) of every view."""
+        batch = uv.shape[:-2]
+        if self._M is not None:
+            return uv.reshape(batch + (-1,)) @ self._M.T
+        cams = self._cameras
+        if cams.distorted:
+            uv = uv.copy()
+            for v in cams.distorted:
+                uv[..., v, :] = self.views[v].undistort(uv[..., v, :])
+        m = (uv - cams.principal) / cams.focal  # normalised coordinates
+        # x_cam[:2] = m x_cam[2] is linear in x: (m r_3 - R_12) x = t_12 - m t_3, two rows of
+        # A x = b per view.
+        A = (m[..., None] * cams.r_3 - cams.R_12).reshape(batch + (-1, 3))
+        b = (cams.t_12 - m * cams.t_3).reshape(batch + (-1,))
+        U, s, Vt = np.linalg.svd(A, full_matrices=False)
+        parallel = s[..., -1] <= 1e-12 * s[..., 0]
+        if parallel.any():
+            raise ValueError(
+                f"cannot triangulate {np.count_nonzero(parallel)} point(s): their viewing rays"
+                " are parallel (a point on the line through the camera centres?)"
+            )
+        y = (U.mT @ b[..., None])[..., 0] / s
+        return (Vt.mT @ y[..., None])[..., 0]
+
+    def _propagate(self, x: Array, cov: Array) -> Array:
+        """Covariances (..., 3, 3) of the reconstruction of checked points (..., 3) from the
+        checked noise covariances (..., V, 2, 2) of every view (the Notes of
+        :meth:`reconstruction_covariance`)."""
+        if self._M is not None:
+            M_v = self._M_views
+            cov_w = np.zeros(x.shape[:-1] + (3, 3)) + (M_v @ cov @ M_v.mT).sum(axis=-3)
+        else:
+            cams = self._cameras
+            x_cam = (x[..., None, None, :] @ cams.R_cam_w.mT)[..., 0, :] + cams.t_cam_w
+            depth = x_cam[..., 2:]  # (..., V, 1)
+            if (depth <= 0.0).any():
+                for v in range(len(self.views)):  # raises for the first view concerned
+                    _check_in_front(depth[..., v, 0])
+            n = x_cam[..., :2] / depth
+            A = cams.R_12 - n[..., None] * cams.r_3  # [I | -n] R_cam_w, (..., V, 2, 3)
+            L_inv = depth[..., None] * cams.inverse_focal
+            for v in cams.distorted:
+                L_inv[..., v, :, :] = np.linalg.inv(self.views[v]._project(x)[1][..., :2])
+            C = L_inv @ cov @ L_inv.mT  # of the lateral errors, mm^2
+            H = (A.mT @ A).sum(axis=-3)
+            N = (A.mT @ C @ A).sum(axis=-3)
+            H_inv = np.linalg.inv(H)  # H, N symmetric: H^-1 N H^-1 = solve(H, solve(H, N)^T)
+            cov_w = H_inv @ N @ H_inv
+        return 0.5 * (cov_w + cov_w.mT)
 
 
 # -------------------------------------------------------------------------------- defaults

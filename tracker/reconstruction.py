@@ -15,6 +15,7 @@ first being the second on a batch of one.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -27,6 +28,10 @@ from tracker.types import Frame, Observation, ViewMeasurement, velocity_from_pos
 
 Array = np.ndarray
 
+_IDENTITY = np.eye(3)
+_IDENTITY.flags.writeable = False
+# The frame before the first one: time, tip and its covariance as one-row arrays.
+_NO_PREVIOUS = (np.full(1, np.nan), np.full((1, 3), np.nan), _IDENTITY[None])
 
 
 @dataclass
@@ -55,11 +60,12 @@ class Reconstructor:
         self.pose = Pose(self.R_w_b, self.o_b_w_mm)
         self.R_w_b, self.o_b_w_mm = self.pose.R_w_b, self.pose.o_b_w_mm
         self.n_points = 1 + len(self.catheter.marker_arclengths_mm)
+        self._view_bits = 1 << np.arange(self.rig.n_views)
         self.reset()
 
     def reset(self) -> None:
         """Forget the previous frame: the next frame has no finite-difference velocity."""
-        self._previous: tuple[float, Array, Array] | None = None
+        self._previous: tuple[Array, Array, Array] | None = None  # one-row time, tip, cov
 
     def observe(self, frame: Frame) -> Observation:
         """Reconstruct one frame. Points missing in one view become single-view measurements."""
@@ -92,44 +98,12 @@ class Reconstructor:
             return []
         time_s = np.array([f.time_s for f in frames], dtype=float)
         q = self._joints(frames)
-        uv, cov = self._points(frames)  # (V, F, P, 2), (V, F, P, 2, 2)
-        found = np.all(np.isfinite(uv), -1) & np.all(np.isfinite(cov), (-2, -1))  # (V, F, P)
-        n_found = found.sum(axis=0)
-        points_b = np.full(n_found.shape + (3,), np.nan)
-        covs_b = np.tile(np.eye(3), n_found.shape + (1, 1))
-        # Points seen in two or more views are triangulated from exactly those views: group
-        # them by the set of views that found them (one group in the usual complete frame).
-        seen = n_found >= 2
-        if seen.any():
-            patterns, group = np.unique(found[:, seen].T, axis=0, return_inverse=True)
-            where = np.argwhere(seen)
-            for g, pattern in enumerate(patterns):
-                f_idx, p_idx = where[group.ravel() == g].T
-                views = np.flatnonzero(pattern)
-                rig = self.rig.subset(views)
-                points_w = rig.reconstruct(*(uv[v, f_idx, p_idx] for v in views))
-                cov_w = rig.reconstruction_covariance(
-                    points_w, *(cov[v, f_idx, p_idx] for v in views)
-                )
-                points_b[f_idx, p_idx] = self.pose.base_from_world(points_w)
-                covs_b[f_idx, p_idx] = self.pose.covariance_to_base(cov_w)
+        uv, cov = self._points(frames)  # (F, P, V, 2), (F, P, V, 2, 2)
+        points_b, covs_b, seen, views = self._reconstructed(uv, cov)
         q_dot = [None if f.q_dot is None else np.asarray(f.q_dot, dtype=float) for f in frames]
         velocity = self._velocities(time_s, points_b[:, 0], covs_b[:, 0], seen[:, 0], q_dot)
-        single = found & (n_found == 1)  # a point seen in one view only: its own update
         out = []
         for i in range(len(frames)):
-            views = tuple(
-                ViewMeasurement(
-                    view=view,
-                    R_w_b=self.R_w_b,
-                    o_b_w_mm=self.o_b_w_mm,
-                    uv=uv[v, i, single[v, i]],
-                    cov=cov[v, i, single[v, i]],
-                    point_index=np.flatnonzero(single[v, i]) - 1,
-                )
-                for v, view in enumerate(self.rig.views)
-                if single[v, i].any()
-            )
             out.append(
                 Observation(
                     time_s=float(time_s[i]),
@@ -139,11 +113,70 @@ class Reconstructor:
                     tip_cov_b=covs_b[i, 0],
                     markers_b_mm=points_b[i, 1:],
                     markers_cov_b=covs_b[i, 1:],
-                    views=views,
+                    views=views[i],
                     **velocity.get(i, {}),
                 )
             )
         return out
+
+    def _reconstructed(
+        self, uv: Array, cov: Array
+    ) -> tuple[Array, Array, Array, list[tuple[ViewMeasurement, ...]]]:
+        """The points of every frame in {B}, from image points (F, P, V, 2) and noise.
+
+        Returns
+        -------
+        points_b, covs_b : arrays (F, P, 3), (F, P, 3, 3)
+            Points seen in two or more views and their covariances, mm, mm^2 (NaN and the
+            identity for the others).
+        seen : bool array (F, P)
+            Which points those are.
+        views : list of tuple of ViewMeasurement
+            Per frame, the points seen in one view only, each view's as its own update.
+        """
+        F, P, V = uv.shape[:3]
+        if np.isfinite(uv).all() and np.isfinite(cov).all():
+            # The usual frames: every point found in every view, all from every view at once.
+            points_w, cov_w = self.rig.reconstruct_with_covariance(
+                uv.reshape(-1, V, 2), cov.reshape(-1, V, 2, 2)
+            )
+            points_b = self.pose.base_from_world(points_w).reshape(F, P, 3)
+            covs_b = self.pose.covariance_to_base(cov_w).reshape(F, P, 3, 3)
+            return points_b, covs_b, np.ones((F, P), dtype=bool), [()] * F
+        found = np.isfinite(uv).all(-1) & np.isfinite(cov).all((-2, -1))  # (F, P, V)
+        n_found = found.sum(axis=-1)
+        seen = n_found >= 2
+        points_b = np.full((F, P, 3), np.nan)
+        covs_b = np.empty((F, P, 3, 3))
+        covs_b[...] = _IDENTITY
+        # Points seen in two or more views are triangulated from exactly those views: grouped
+        # by their set of views (bit v for view v), each set in one vectorised call.
+        view_sets = (found * self._view_bits).sum(axis=-1)  # (F, P)
+        for view_set in sorted(set(view_sets[seen].tolist())):
+            group = seen & (view_sets == view_set)
+            views = [v for v in range(V) if view_set >> v & 1]
+            points_w, cov_w = self.rig.subset(views).reconstruct_with_covariance(
+                uv[group][:, views], cov[group][:, views]
+            )
+            points_b[group] = self.pose.base_from_world(points_w)
+            covs_b[group] = self.pose.covariance_to_base(cov_w)
+        single = found & (n_found == 1)[..., None]  # a point seen in one view only
+        single_views = [
+            tuple(
+                ViewMeasurement(
+                    view=view,
+                    R_w_b=self.R_w_b,
+                    o_b_w_mm=self.o_b_w_mm,
+                    uv=uv[i, single[i, :, v], v],
+                    cov=cov[i, single[i, :, v], v],
+                    point_index=np.flatnonzero(single[i, :, v]) - 1,
+                )
+                for v, view in enumerate(self.rig.views)
+                if has_single[v]
+            )
+            for i, has_single in enumerate(single.any(axis=1).tolist())
+        ]
+        return points_b, covs_b, seen, single_views
 
     def _velocities(
         self,
@@ -159,40 +192,43 @@ class Reconstructor:
         for the first) have the tip in two or more views, ``0 < dt <= max_velocity_gap_s``, and the
         frame has joint rates (the velocity is fused with them).
         """
-        if self._previous is None:
-            previous = (np.nan, np.full(3, np.nan), np.eye(3))
+        # Which frames get one, decided on plain floats (numpy's call overhead would outweigh
+        # the work for the one frame of the live loop).
+        gap_s = self.max_velocity_gap_s
+        before_s = math.nan if self._previous is None else float(self._previous[0][0])
+        before_known = self._previous is not None
+        formed = []
+        frames = zip(time_s.tolist(), has_tip.tolist(), q_dot, strict=True)
+        for k, (t, known, rate) in enumerate(frames):
+            if known and before_known and rate is not None and 0 < t - before_s <= gap_s:
+                formed.append(k)
+            before_s, before_known = t, known
+        if not formed:
+            velocity = {}
         else:
-            previous = self._previous
-        times = np.concatenate([[previous[0]], time_s])
-        tips = np.concatenate([previous[1][None], tip_b])
-        covs = np.concatenate([previous[2][None], tip_cov_b])
-        tip_known = np.concatenate([[self._previous is not None], has_tip])
-        dt = np.diff(times)
-        with np.errstate(invalid="ignore"):  # dt is NaN without a previous frame
-            formed = tip_known[1:] & tip_known[:-1] & (dt > 0) & (dt <= self.max_velocity_gap_s)
-        formed &= np.array([rate is not None for rate in q_dot], dtype=bool)
-        i = np.flatnonzero(formed)
-        velocity = {}
-        if i.size:
+            # Row k of [the previous call's last frame, *these frames] is frame k's predecessor.
+            previous = self._previous or _NO_PREVIOUS
+            k = np.array(formed)
             v, cov_v, cross = velocity_from_positions(
-                tips[i + 1], covs[i + 1], tips[i], covs[i], dt[i]
+                tip_b[k],
+                tip_cov_b[k],
+                np.concatenate((previous[1], tip_b))[k],
+                np.concatenate((previous[2], tip_cov_b))[k],
+                time_s[k] - np.concatenate((previous[0], time_s))[k],
             )
             velocity = {
-                int(k): dict(
-                    velocity_b_mm_s=v[j], velocity_cov_b=cov_v[j], velocity_tip_cov_b=cross[j]
-                )
-                for j, k in enumerate(i)
+                k: dict(velocity_b_mm_s=v[j], velocity_cov_b=cov_v[j], velocity_tip_cov_b=cross[j])
+                for j, k in enumerate(formed)
             }
-        self._previous = (float(time_s[-1]), tip_b[-1], tip_cov_b[-1]) if has_tip[-1] else None
+        self._previous = (time_s[-1:], tip_b[-1:], tip_cov_b[-1:]) if has_tip[-1] else None
         return velocity
 
     def _joints(self, frames: Sequence[Frame]) -> Array:
         """Joint values (F, 3), or a ValueError naming the first frame without them."""
         what = "the joint values (q_r [rad], q_p [mm], q_d [mm])"
         q = self._stacked(frames, "q", lambda f: f.q, (3,), what)
-        finite = np.all(np.isfinite(q), axis=-1)
-        if not finite.all():
-            bad = frames[int(np.argmin(finite))]
+        if not np.isfinite(q).all():
+            bad = frames[int(np.argmin(np.isfinite(q).all(axis=-1)))]
             raise ValueError(
                 f"the frame at {bad.time_s} s has joint values {bad.q}: three finite numbers"
                 " are needed"
@@ -200,7 +236,8 @@ class Reconstructor:
         return q
 
     def _points(self, frames: Sequence[Frame]) -> tuple[Array, Array]:
-        """Image points (V, F, P, 2) and covariances (V, F, P, 2, 2) of every frame."""
+        """Image points (F, P, V, 2) and covariances (F, P, V, 2, 2) of every frame: the
+        views of a point side by side, as :meth:`Rig.reconstruct_with_covariance` takes them."""
         n_views = self.rig.n_views
         bad = next((f for f in frames if len(f.uv) != n_views), None)
         if bad is not None:
@@ -208,20 +245,28 @@ class Reconstructor:
                 f"the frame at {bad.time_s} s has image points of {len(bad.uv)} views, the rig"
                 f" has {n_views} ({', '.join(self.rig.names)})"
             )
+        # Every view of every frame in one array each, (F, V, P, ...), handed out as
+        # (F, P, V, ...); view by view where that fails, to name the first bad one.
+        P = self.n_points
+        try:
+            uv = np.array([f.uv for f in frames], dtype=float)
+            cov = np.array([f.cov for f in frames], dtype=float)
+        except (TypeError, ValueError):  # ragged (shapes differ) or not numbers
+            uv = cov = None
+        if (
+            uv is not None
+            and uv.shape[1:] == (n_views, P, 2)
+            and cov.shape[1:] == (n_views, P, 2, 2)
+        ):
+            return uv.swapaxes(1, 2), cov.swapaxes(1, 2)
         what = "the tip and every marker of the catheter model"
         uv, cov = [], []
         for v, name in enumerate(self.rig.names):
-            uv.append(
-                self._stacked(
-                    frames, f"uv[{name}]", lambda f, v=v: f.uv[v], (self.n_points, 2), what
-                )
-            )
+            uv.append(self._stacked(frames, f"uv[{name}]", lambda f, v=v: f.uv[v], (P, 2), what))
             cov.append(
-                self._stacked(
-                    frames, f"cov[{name}]", lambda f, v=v: f.cov[v], (self.n_points, 2, 2), what
-                )
+                self._stacked(frames, f"cov[{name}]", lambda f, v=v: f.cov[v], (P, 2, 2), what)
             )
-        return np.stack(uv), np.stack(cov)
+        return np.stack(uv, axis=2), np.stack(cov, axis=2)
 
     @staticmethod
     def _stacked(frames: Sequence[Frame], name: str, field, shape: tuple, what: str) -> Array:

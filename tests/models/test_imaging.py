@@ -218,6 +218,73 @@ def test_covariance_broadcasts_over_points_and_noise(name):
     np.testing.assert_allclose(zero, 0.0, atol=1e-18)
 
 
+@pytest.mark.parametrize("name", RIGS)
+def test_stacked_views_give_reconstruct_and_its_covariance(name):
+    """The live loop's one call per set of views is reconstruct, then reconstruction_covariance
+    of the reconstructed points, view by view."""
+    rig = make_rig(name)
+    rng = np.random.default_rng(10)
+    points_w = rng.uniform(-20.0, 20.0, (2, 5, 3))
+    uv = tuple(u + rng.normal(0.0, 0.3, u.shape) for u in rig.project(points_w))
+    covs = COVARIANCES[rig.kind]
+    points, cov_w = rig.reconstruct_with_covariance(
+        np.stack(uv, axis=-2), np.broadcast_to(np.stack(covs), (2, 5, 2, 2, 2))
+    )
+    expected = rig.reconstruct(*uv)
+    np.testing.assert_allclose(points, expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        cov_w, rig.reconstruction_covariance(expected, *covs), rtol=1e-12, atol=1e-15
+    )
+
+
+@pytest.mark.parametrize("name", ["pinhole", "pinhole-distorted"])
+def test_camera_covariance_is_the_jacobian_propagation(name):
+    """The closed-form lateral model (A = [I | -n] R_cam_w; L^-1 = Z K_2^-1 without distortion)
+    is what the projection Jacobian gives: A = L^-1 J R_cam_w, C_e = L^-1 C L^-T."""
+    rig = make_rig(name)
+    rng = np.random.default_rng(11)
+    points_w = rng.uniform(-20.0, 20.0, (4, 3))
+    covs = COVARIANCES["pinhole"]
+    H = N = 0.0
+    for view, C in zip(rig.views, covs, strict=True):
+        J = view.projection_jacobian(points_w) @ view.R_cam_w.T  # d pixel / d x_cam
+        L = J[..., :2]
+        A = np.linalg.solve(L, J) @ view.R_cam_w
+        C_e = np.linalg.solve(L, np.swapaxes(np.linalg.solve(L, C), -1, -2))
+        H = H + np.swapaxes(A, -1, -2) @ A
+        N = N + np.swapaxes(A, -1, -2) @ C_e @ A
+    expected = np.linalg.solve(H, np.swapaxes(np.linalg.solve(H, N), -1, -2))
+    np.testing.assert_allclose(
+        rig.reconstruction_covariance(points_w, *covs), expected, rtol=1e-9, atol=1e-15
+    )
+
+
+def test_stacked_views_are_checked_and_the_bad_view_named():
+    rig = make_rig("pinhole")
+    uv = np.stack(rig.project(np.zeros((3, 3))), axis=-2)
+    good = np.tile(np.eye(2), (3, 2, 1, 1))
+    asymmetric = good.copy()
+    asymmetric[1, 1, 0, 1] = 0.5
+    with pytest.raises(ValueError, match="cov_side must be symmetric"):
+        rig.reconstruct_with_covariance(uv, asymmetric)
+    negative = good.copy()
+    negative[2, 0] = np.diag([1.0, -1.0])
+    with pytest.raises(ValueError, match="cov_front must be positive semi-definite"):
+        rig.reconstruct_with_covariance(uv, negative)
+    # Each view against its own scale: tiny noise in one view is not judged by the other's.
+    scaled = good.copy()
+    scaled[:, 1] *= 1e-12
+    scaled[0, 1, 0, 1] = 1e-12 * 1e-6
+    with pytest.raises(ValueError, match="cov_side must be symmetric"):
+        rig.reconstruct_with_covariance(uv, scaled)
+    with pytest.raises(ValueError, match=r"uv must have shape \(\.\.\., 2, 2\)"):
+        rig.reconstruct_with_covariance(uv[..., :1, :], good)
+    nan = uv.copy()
+    nan[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="uv contains non-finite values"):
+        rig.reconstruct_with_covariance(nan, good)
+
+
 def test_isotropic_covariance():
     np.testing.assert_allclose(isotropic_covariance(0.5), 0.25 * np.eye(2))
     assert isotropic_covariance([1.0, 2.0], dim=3).shape == (2, 3, 3)

@@ -156,3 +156,19 @@ def test_velocity_rule_is_the_same_one_frame_or_many():
     dt[2, 3] = 0.0
     with pytest.raises(ValueError, match="positive and finite"):
         velocity_from_positions(tips_now, covs_now, tips_before, covs_before, dt)
+
+
+@pytest.mark.parametrize("kind", ["pinhole", "orthographic"])
+def test_complete_frames_give_the_same_alone_as_among_incomplete_ones(kind):
+    """Frames with every point in every view are reconstructed in one call; among frames
+    with missing points, grouped by the views that found each point: the same values."""
+    scene = _scene(kind)
+    frames = _frames(scene, 4)
+    complete = [all(np.isfinite(u).all() for u in f.uv) for f in frames]
+    assert any(complete) and not all(complete)
+    mixed = _reconstructor(scene).observe_batch(frames)
+    alone = _reconstructor(scene).observe_batch([f for f, c in zip(frames, complete, strict=True) if c])
+    for a, b in zip([o for o, c in zip(mixed, complete, strict=True) if c], alone, strict=True):
+        for name in ("tip_b_mm", "tip_cov_b", "markers_b_mm", "markers_cov_b"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert a.views == b.views == ()

@@ -28,6 +28,7 @@ from tracker.io.datagrams import (
     marker_datagram_size,
 )
 from tracker.io.joints import JointStatus
+from tracker.io.limits import joint_sample_in_range, joints_in_range
 from tracker.io.udp import EstimateSender, JointReceiver, MarkerReceiver
 from tracker.types import Estimate, Flag
 
@@ -66,6 +67,29 @@ def test_joint_datagram_without_rates():
     packet = decode_joints(encode_joints(1, 0.0, [0.0, 0.1, 0.2]))
     assert packet.flags & JointFlags.NO_RATES
     assert np.all(np.isnan(packet.q_dot))
+
+
+def test_joint_datagram_without_rates_carries_nan_rates_whatever_was_sent():
+    data = JOINT_STRUCT.pack(JOINT_MAGIC, 1, 0xFFFF, 3, 0, 0.5, 0.1, 0.2, 0.3, 1e300, 2.0, 3.0)
+    packet = decode_joints(data)  # unknown flag bits are ignored; the rate fields are not read
+    assert packet.flags is JointFlags.NO_RATES and packet.q == (0.1, 0.2, 0.3)
+    assert all(math.isnan(r) for r in packet.q_dot)
+
+
+def test_one_joint_sample_is_range_checked_by_the_rule_for_many():
+    """The decoder's per-datagram check in plain floats is joints_in_range's rule."""
+    rng = np.random.default_rng(3)
+    special = [0.0, 100.0, -100.0, np.nextafter(100.0, 200.0), 1e4, 1e5, 1e300, np.inf, np.nan]
+    q = rng.choice(special, (400, 3))
+    q_dot = rng.choice(special, (400, 3))
+    for rates in (q_dot, None):
+        expected = joints_in_range(q, rates)
+        got = [
+            joint_sample_in_range(tuple(q[k]), None if rates is None else tuple(rates[k]))
+            for k in range(len(q))
+        ]
+        np.testing.assert_array_equal(got, expected)
+    assert expected.any() and not expected.all()
 
 
 @pytest.mark.parametrize(
@@ -193,6 +217,29 @@ def test_joint_receiver_orders_counts_and_interpolates(sender):
         assert receiver.sample(-0.01).status is JointStatus.CLAMPED
         assert receiver.sample(-1.0).status is JointStatus.STALE
         assert receiver.poll() == 0  # nothing pending: returns at once
+
+
+def test_a_burst_is_drained_in_order_and_kept_in_blocks(sender):
+    """Many pending datagrams: every one is taken, the history keeps the newest in order, and
+    reading between datagrams or only at the end keeps the same samples."""
+    with JointReceiver(port=0, clock="sender", history=100) as receiver:
+        times = np.arange(300) * 1e-3
+        for k, t in enumerate(times):
+            sender.sendto(encode_joints(k, t, *ramp_q(t)), receiver.address)
+        assert receiver.poll() == 300 and receiver.counts.accepted == 300
+        assert len(receiver) == 100 and receiver.newest.sequence == 299
+        np.testing.assert_allclose(receiver.sample_times(), times[200:])
+        np.testing.assert_allclose(receiver.sample(0.25).q, ramp_q(0.25)[0], atol=1e-12)
+    at_once = JointReceiver(port=None, clock="aligned", history=64)
+    each = JointReceiver(port=None, clock="aligned", history=64)
+    for k in range(500):
+        data = encode_joints(k, k * 1e-3, *ramp_q(k * 1e-3))
+        at_once.add_datagram(data, 7.0 + k * 1e-3)
+        each.add_datagram(data, 7.0 + k * 1e-3)
+        assert len(each) == min(k + 1, 64)  # a read between datagrams
+    kept, kept_too = at_once.snapshot(), each.snapshot()
+    for name in ("time_s", "q", "q_dot"):
+        np.testing.assert_array_equal(getattr(kept, name), getattr(kept_too, name))
 
 
 def test_joint_receiver_without_samples():

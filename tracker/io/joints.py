@@ -97,25 +97,34 @@ class JointHistory:
         if n == 0:
             nan = np.full((m, 3), np.nan)
             return nan, nan.copy(), np.full(m, math.inf)
-        rates = np.full((n, 3), np.nan) if self.q_dot is None else self.q_dot
-        values = np.concatenate([np.asarray(self.q, float), np.asarray(rates, float)], axis=1)
-        hi = np.minimum(np.searchsorted(t, times, side="left"), n - 1)  # first sample >= time
+        hi = np.minimum(t.searchsorted(times, side="left"), n - 1)  # first sample >= time
         exact = t[hi] == times
         lo = np.where(exact, hi, np.maximum(hi - 1, 0))
         spacing = t[hi] - t[lo]
         inside = (t[lo] <= times) & (times <= t[hi])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(spacing > 0, (times - t[lo]) / np.where(spacing > 0, spacing, 1.0), 0.0)
-        w = np.clip(w, 0.0, 1.0)
-        row = (1.0 - w)[:, None] * values[lo] + w[:, None] * values[hi]
+        w = np.zeros(m)
+        np.divide(times - t[lo], spacing, out=w, where=spacing > 0)
+        w = np.minimum(np.maximum(w, 0.0), 1.0)
         # At a sample (and outside the history) its row as it is: bit-exact, and a rate that
         # was not measured at the other bracketing sample does not leak in.
         at_sample = (w == 0.0) | (w == 1.0)
-        row[at_sample] = values[np.where(w == 1.0, hi, lo)[at_sample]]
-        q, q_dot = row[:, :3], row[:, 3:]
-        missing = ~np.all(np.isfinite(q_dot), axis=1)
+        nearest = np.where(w == 1.0, hi, lo)[at_sample]
+
+        def between(values: Array) -> Array:
+            # Only the bracketing rows are read: the history may hold thousands.
+            row = (1.0 - w)[:, None] * values[lo] + w[:, None] * values[hi]
+            row[at_sample] = values[nearest]
+            return row
+
+        q_all = np.asarray(self.q, float)
+        q = between(q_all)
+        if self.q_dot is None:
+            q_dot = np.full((m, 3), np.nan)
+        else:
+            q_dot = between(np.asarray(self.q_dot, float))
+        missing = ~np.isfinite(q_dot).all(axis=1)
         if missing.any():
-            q_dot[missing] = self._slope(times[missing], values[:, :3], rate_window_s)
+            q_dot[missing] = self._slope(times[missing], q_all, rate_window_s)
         return q, q_dot, np.where(inside, spacing, math.inf)
 
     def _slope(self, times: Array, q: Array, window_s: float) -> Array:
@@ -126,8 +135,10 @@ class JointHistory:
         span = hi - lo
         slope = np.zeros((times.size, 3))
         usable = span > 0
+        ends = np.concatenate([hi, lo])  # one interpolation per joint for both window ends
         for k in range(3):
-            delta = np.interp(hi, t, q[:, k]) - np.interp(lo, t, q[:, k])
+            at_ends = np.interp(ends, t, q[:, k])
+            delta = at_ends[: times.size] - at_ends[times.size :]
             slope[usable, k] = delta[usable] / span[usable]
         return slope
 

@@ -61,6 +61,31 @@ def joints_in_range(q: Array, q_dot: Array | None = None) -> Array:
     return ok
 
 
+_VALUE_LIMITS = tuple(JOINT_VALUE_LIMITS.tolist())
+_RATE_LIMITS = tuple(JOINT_RATE_LIMITS.tolist())
+
+
+def joint_sample_in_range(q, q_dot=None) -> bool:
+    """:func:`joints_in_range` of one sample, in plain floats.
+
+    The same rule (NaN values fail, NaN rates pass) for the joint datagram decoder, which
+    checks one sample per datagram at 1 kHz: three comparisons per vector cost far less than
+    numpy's call overhead on three values.
+
+    Parameters
+    ----------
+    q : sequence of 3 floats
+    q_dot : sequence of 3 floats, optional
+    """
+    (q_r, q_p, q_d), (max_r, max_p, max_d) = q, _VALUE_LIMITS
+    if not (abs(q_r) <= max_r and abs(q_p) <= max_p and abs(q_d) <= max_d):
+        return False
+    if q_dot is None:
+        return True
+    (r_r, r_p, r_d), (max_r, max_p, max_d) = q_dot, _RATE_LIMITS
+    return not (abs(r_r) > max_r or abs(r_p) > max_p or abs(r_d) > max_d)
+
+
 def points_in_range(uv: Array, cov: Array) -> Array:
     """Which image points (finite ones) and covariances are within the cameras' ranges: the
     coordinates within :data:`MAX_IMAGE_COORDINATE`, the covariance symmetric positive

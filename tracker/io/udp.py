@@ -30,7 +30,6 @@ import numpy as np
 from tracker.io.datagrams import (
     SEQUENCE_MODULUS,
     DatagramError,
-    JointFlags,
     JointPacket,
     SegmentedMarkers,
     decode_joints,
@@ -161,18 +160,20 @@ class JointReceiver:
         self.time_window_s = float(time_window_s)
         self.monotonic = monotonic
         self.counts = StreamCounts()
-        # Twice the history, compacted when full: the kept samples stay one contiguous,
-        # time-ordered slice, so interpolation is one searchsorted.
-        self._sender_s = np.empty(2 * self.history)
-        self._arrival_s = np.empty(2 * self.history)
-        self._values = np.empty((2 * self.history, 6))
+        # Rows (sender time, arrival time, q, q_dot) in twice the history, compacted when
+        # full: the kept samples stay one contiguous, time-ordered slice, so interpolation is
+        # one searchsorted. Accepted samples wait in ``_pending`` as tuples and go in as one
+        # block when the history is read: a row written into numpy costs more than the rest
+        # of a datagram's handling.
+        self._rows = np.empty((2 * self.history, 8))
         self._start = self._end = 0
+        self._pending: list[tuple[float, ...]] = []
         self._newest: JointPacket | None = None
         self._newest_arrival_s = 0.0
         # Datagrams dropped for their time, consecutive and consistent among themselves:
         # (packet, arrival, the reason it was counted under).
         self._jumped: list[tuple[JointPacket, float, str]] = []
-        self._buffer = bytearray(_RECEIVE_BUFFER_BYTES)
+        self._view = memoryview(bytearray(_RECEIVE_BUFFER_BYTES))  # decoded in place
         self._sock = None if port is None else _udp_socket(host, port, rcvbuf_bytes)
 
     # ---------------------------------------------------------------- socket side
@@ -191,15 +192,15 @@ class JointReceiver:
         if self._sock is None:
             return 0
         accepted = 0
-        view = memoryview(self._buffer)
+        recv_into, view = self._sock.recv_into, self._view
         while True:
             try:
-                n = self._sock.recv_into(self._buffer)
+                n = recv_into(view)
             except (BlockingIOError, InterruptedError):
                 return accepted
             except OSError:  # e.g. an ICMP error queued on the socket: not a datagram
                 return accepted
-            accepted += self.add_datagram(bytes(view[:n]), self.monotonic())
+            accepted += self.add_datagram(view[:n], self.monotonic())
 
     def wait(self, timeout_s: float) -> int:
         """Block until a datagram is pending or ``timeout_s`` passes, then :meth:`poll`."""
@@ -219,7 +220,7 @@ class JointReceiver:
         self.close()
 
     # ---------------------------------------------------------------- stream logic
-    def add_datagram(self, data: bytes, arrival_s: float) -> int:
+    def add_datagram(self, data: bytes | memoryview, arrival_s: float) -> int:
         """Validate, order and keep one datagram; 1 if accepted, 0 if dropped (counted)."""
         self.counts.received += 1
         try:
@@ -241,7 +242,7 @@ class JointReceiver:
             behind = SEQUENCE_MODULUS - ahead if ahead >= SEQUENCE_MODULUS // 2 else 0
             if behind > self.restart_gap:
                 self.counts.restarts += 1
-                self._start = self._end = 0
+                self._clear()
                 self._jumped.clear()
             elif behind:
                 self.counts.stale += 1
@@ -279,7 +280,7 @@ class JointReceiver:
             return 0
         jumped, self._jumped = self._jumped, []
         self.counts.restarts += 1
-        self._start = self._end = 0
+        self._clear()
         for kept, kept_arrival_s, counted_as in jumped:
             if counted_as == "stale":
                 self.counts.stale -= 1
@@ -291,28 +292,37 @@ class JointReceiver:
         return len(jumped)
 
     def _keep(self, packet: JointPacket, arrival_s: float) -> None:
-        self._append(packet, arrival_s)
+        self._pending.append((packet.time_s, arrival_s, *packet.q, *packet.q_dot))
+        if len(self._pending) >= self.history:
+            self._flush()  # nobody reads (an idle loop): bound the memory
         self._newest = packet
         self._newest_arrival_s = arrival_s
         self.counts.accepted += 1
 
-    def _append(self, packet: JointPacket, arrival_s: float) -> None:
-        if self._end == self._sender_s.size:
-            keep = self.history - 1
-            lo = self._end - keep
-            for a in (self._sender_s, self._arrival_s, self._values):
-                a[:keep] = a[lo : self._end]
+    def _clear(self) -> None:
+        """Forget every kept sample (a restarted sender)."""
+        self._start = self._end = 0
+        self._pending.clear()
+
+    def _flush(self) -> None:
+        """Move the pending samples into the rows, the newest ``history`` of them in one block."""
+        if not self._pending:
+            return
+        block = np.array(self._pending[-self.history :], dtype=float)
+        self._pending.clear()
+        n = len(block)
+        if self._end + n > len(self._rows):
+            keep = min(self._end - self._start, self.history - n)
+            self._rows[:keep] = self._rows[self._end - keep : self._end]
             self._start, self._end = 0, keep
-        i = self._end
-        self._sender_s[i] = packet.time_s
-        self._arrival_s[i] = arrival_s
-        self._values[i, :3] = packet.q
-        self._values[i, 3:] = packet.q_dot
-        if packet.flags & JointFlags.NO_RATES:
-            self._values[i, 3:] = np.nan
-        self._end += 1
-        if self._end - self._start > self.history:
-            self._start = self._end - self.history
+        self._rows[self._end : self._end + n] = block
+        self._end += n
+        self._start = max(self._start, self._end - self.history)
+
+    def _kept(self) -> Array:
+        """The kept rows (sender time, arrival time, q, q_dot), oldest first: a view."""
+        self._flush()
+        return self._rows[self._start : self._end]
 
     @property
     def newest(self) -> JointPacket | None:
@@ -320,29 +330,39 @@ class JointReceiver:
         return self._newest
 
     def __len__(self) -> int:
-        return self._end - self._start
+        return len(self._kept())
 
     def sample_times(self) -> Array:
         """Times of the kept samples in this receiver's clock (see ``clock``), s."""
-        sender = self._sender_s[self._start : self._end]
+        return self._times(self._kept())
+
+    def _times(self, rows: Array) -> Array:
+        """Times of ``rows`` in this receiver's clock (a new array)."""
+        sender = rows[:, 0]
         if self.clock == "sender":
             return sender.copy()
-        arrival = self._arrival_s[self._start : self._end]
+        arrival = rows[:, 1]
         if self.clock == "arrival":
             return arrival.copy()
         return sender + float(np.min(arrival - sender)) if sender.size else sender.copy()
 
     def samples_after(self, time_s: float) -> tuple[Array, Array, Array]:
         """Kept samples later than ``time_s`` (receiver clock): times (n,), q, q_dot (n, 3)."""
-        times = self.sample_times()
+        rows = self._kept()
+        times = self._times(rows)
         k = int(np.searchsorted(times, time_s, side="right"))
-        values = self._values[self._start + k : self._end]
-        return times[k:], values[:, :3].copy(), values[:, 3:].copy()
+        return times[k:], rows[k:, 2:5].copy(), rows[k:, 5:8].copy()
 
     def snapshot(self) -> JointHistory:
-        """The kept samples on this receiver's clock (rates NaN where not sent)."""
-        values = self._values[self._start : self._end]
-        return JointHistory(self.sample_times(), values[:, :3].copy(), values[:, 3:].copy())
+        """The kept samples on this receiver's clock (rates NaN where not sent), a copy."""
+        history = self._history()
+        return JointHistory(history.time_s, history.q.copy(), history.q_dot.copy())
+
+    def _history(self) -> JointHistory:
+        """The kept samples, values and rates as views of the rows: for use at once (the
+        next sample kept may overwrite them), without copying thousands of rows per frame."""
+        rows = self._kept()
+        return JointHistory(self._times(rows), rows[:, 2:5], rows[:, 5:8])
 
     def sample(self, time_s: float, rate_window_s: float = RATE_WINDOW_S) -> JointSample:
         """Joint values and rates at ``time_s`` (this receiver's clock), linearly interpolated.
@@ -351,7 +371,7 @@ class JointReceiver:
         slope of the values over ``rate_window_s`` around ``time_s``
         (:meth:`tracker.io.joints.JointHistory.interpolate`).
         """
-        return self.snapshot().sample(time_s, self.stale_after_s, rate_window_s)
+        return self._history().sample(time_s, self.stale_after_s, rate_window_s)
 
 
 class JointStreamer:
