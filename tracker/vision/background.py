@@ -25,13 +25,19 @@ frame; the whole image at the start and whenever the catheter is not found there
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import cv2
 import numpy as np
 
 from tracker.vision.detection import detection_backgrounds
 from tracker.vision.photometry import Photometry, background_samples, register_shift
-from tracker.vision.segmentation import SegmentationFlag, Segmenter, ViewSegmentation
+from tracker.vision.segmentation import (
+    NOT_SEGMENTED,
+    SegmentationFlag,
+    Segmenter,
+    ViewSegmentation,
+)
 from tracker.vision.settings import SegmentationSettings, check_image
 
 Array = np.ndarray
@@ -130,17 +136,20 @@ class BackgroundModel:
         one = 1 << _SHIFT
         for points, half_width_px in catheter_px:
             points = np.asarray(points, float).reshape(-1, 2)
-            points = points[np.all(np.isfinite(points), axis=1)]
-            thickness = int(np.ceil(2.0 * (half_width_px + s.catheter_clearance_px)))
-            if points.size == 0 or not (
-                points[:, 1].min() - thickness < y1 and points[:, 1].max() + thickness > y0
-            ):
+            if not np.isfinite(points).all():
+                points = points[np.isfinite(points).all(axis=1)]
+            thickness = math.ceil(2.0 * (half_width_px + s.catheter_clearance_px))
+            if points.size == 0:
                 continue
-            fixed = np.rint((points - (0.0, y0)) * one).astype(np.int32)
+            rows = points[:, 1]
+            if not (rows.min() - thickness < y1 and rows.max() + thickness > y0):
+                continue
+            # Fixed point in the stripe: y0 is whole, so shifting after rounding is exact.
+            fixed = np.rint(points * one).astype(np.int32)
+            fixed[:, 1] -= y0 * one
             cv2.polylines(mask, [fixed], False, 0, thickness, cv2.LINE_8, _SHIFT)
-            for p in fixed[[0, -1]]:
-                cv2.circle(mask, (int(p[0]), int(p[1])), (thickness * one) // 2, 0, -1,
-                           cv2.LINE_8, _SHIFT)
+            for x, y in (fixed[0].tolist(), fixed[-1].tolist()):
+                cv2.circle(mask, (x, y), (thickness * one) // 2, 0, -1, cv2.LINE_8, _SHIFT)
         cv2.accumulateWeighted(in_photometry, level, s.background_rate, mask)
         self.image[y0:y1] = _to_u8(level)
         if self._stripe == 0:
@@ -224,7 +233,7 @@ class CameraSegmenter:
         extra = SegmentationFlag.NONE
         if flags & SegmentationFlag.CAMERA_MOVED and not flags & SegmentationFlag.EXPOSURE:
             photometry, extra = self._reregister(image, photometry)
-        if np.hypot(*self.background.shift_px) > s.camera_moved_px:
+        if math.hypot(*self.background.shift_px.tolist()) > s.camera_moved_px:
             extra |= SegmentationFlag.CAMERA_MOVED
         if extra & SegmentationFlag.BACKGROUND_LOST:
             seg = segmenter.empty_result(flags | extra, photometry)
@@ -236,9 +245,7 @@ class CameraSegmenter:
             )
             if extra:
                 seg = dataclasses.replace(seg, flags=seg.flags | extra)
-        if photometry.fitted and not seg.flags & (
-            SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST
-        ):
+        if photometry.fitted and not seg.flags & NOT_SEGMENTED:
             self.noise_gray = (
                 photometry.sigma_gray if self.noise_gray is None
                 else 0.9 * self.noise_gray + 0.1 * photometry.sigma_gray
@@ -255,21 +262,21 @@ class CameraSegmenter:
         if self.settings.roi_pad_px <= 0:
             return None
         if predicted_px is not None:
-            points = np.asarray(predicted_px, float).reshape(-1, 2)
+            points = [np.asarray(predicted_px, float).reshape(-1, 2)]
         elif self.last is not None:
-            points = np.vstack([self.last.centreline_px, self.last.tip_px[None]])
+            points = [self.last.centreline_px, self.last.tip_px[None]]
         else:
             return None
         if self.base_px is not None:
-            points = np.vstack([points, self.base_px[None]])
-        return points
+            points.append(self.base_px[None])
+        return np.concatenate(points)
 
     def _catheter_lines(self, seg: ViewSegmentation) -> list[tuple[Array, float]]:
         """The catheter's centreline of this frame, or of the last frame if none was found."""
         source = seg if seg.centreline_px.shape[0] >= 2 else self.last
         if source is None:
             return []
-        radius = source.tube_radius_px if np.isfinite(source.tube_radius_px) else 4.0
+        radius = source.tube_radius_px if math.isfinite(source.tube_radius_px) else 4.0
         # The proximal tube is wider than the distal radius measured at the tip: 1.2 / 0.89.
         return [(source.centreline_px, 1.5 * radius)]
 

@@ -66,15 +66,21 @@ def search_box(points_px: Array, pad_px: float, shape: tuple[int, int]) -> Box:
     Non-finite points are left out; with none left (or ``pad_px <= 0``), the whole image.
     """
     height, width = shape
+    whole = (0, 0, width, height)
     points = np.asarray(points_px, float).reshape(-1, 2)
-    points = points[np.all(np.isfinite(points), axis=1)]
     if points.size == 0 or pad_px <= 0:
-        return (0, 0, width, height)
-    lo = np.floor(points.min(axis=0) - pad_px)
-    hi = np.ceil(points.max(axis=0) + pad_px) + 1
-    box = (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], width)), int(min(hi[1], height)))
+        return whole
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    if not np.isfinite(lo + hi).all():  # some points are not: leave them out
+        points = points[np.isfinite(points).all(axis=1)]
+        if points.size == 0:
+            return whole
+        lo, hi = points.min(axis=0), points.max(axis=0)
+    (x_lo, y_lo), (x_hi, y_hi) = lo.tolist(), hi.tolist()
+    box = (max(math.floor(x_lo - pad_px), 0), max(math.floor(y_lo - pad_px), 0),
+           min(math.ceil(x_hi + pad_px) + 1, width), min(math.ceil(y_hi + pad_px) + 1, height))
     if box[2] - box[0] < 2 or box[3] - box[1] < 2:
-        return (0, 0, width, height)
+        return whole
     return box
 
 
@@ -95,7 +101,7 @@ def coarse_region(
     )
     below = _below_table(photometry.lut, threshold)
     mask = cv2.compare(half_resolution(image), cv2.LUT(coarse_background, below), cv2.CMP_LT)
-    base = None if base_px is None else 0.5 * np.asarray(base_px, float).reshape(2)
+    base = None if base_px is None else (0.5 * float(base_px[0]), 0.5 * float(base_px[1]))
     picked = pick_blobs(mask, base, settings, scale=0.5)
     if picked is None:
         return None
@@ -104,6 +110,7 @@ def coarse_region(
     box = (max(2 * x0 - 4, 0), max(2 * y0 - 4, 0), min(2 * x1 + 4, width),
            min(2 * y1 + 4, height))
     return box, base_ok
+
 
 def foreground(
     image: Array,
@@ -128,6 +135,7 @@ def foreground(
         cv2.CMP_LT,
     )
 
+
 def find_in_box(
     image: Array,
     smoothed_background: Array,
@@ -146,7 +154,7 @@ def find_in_box(
     bx0, by0, bx1, by1 = box
     mask = foreground(image, smoothed_background, photometry, box, settings)
     if base_px is not None:
-        base_px = np.asarray(base_px, float).reshape(2) - (bx0, by0)
+        base_px = (float(base_px[0]) - bx0, float(base_px[1]) - by0)
     picked = pick_blobs(mask, base_px, settings)
     if picked is None:
         return None
@@ -159,13 +167,17 @@ def find_in_box(
             return None
     return (x0 + bx0, y0 + by0, x1 + bx0, y1 + by0), mask[y0:y1, x0:x1], base_ok
 
+
 def pick_blobs(
-    mask: Array, base_px: Array | None, settings: SegmentationSettings, scale: float = 1.0
+    mask: Array,
+    base_px: tuple[float, float] | None,
+    settings: SegmentationSettings,
+    scale: float = 1.0,
 ) -> tuple[Box, bool] | None:
     """The catheter's blob and the blobs near it: ROI (x0, y0, x1, y1), base found.
 
-    ``scale`` is the mask's resolution relative to the image's (the settings' areas and
-    distances are in image pixels).
+    ``base_px`` is the base in the mask's pixels; ``scale`` the mask's resolution relative
+    to the image's (the settings' areas and distances are in image pixels).
     """
     s = settings
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -179,13 +191,11 @@ def pick_blobs(
         return None
     base_ok = False
     main = max(range(len(blobs)), key=lambda i: blobs[i][0])
-    if base_px is not None:
-        p = tuple(float(v) for v in np.ravel(base_px)[:2])
-        if math.isfinite(p[0]) and math.isfinite(p[1]):
-            dist = [-cv2.pointPolygonTest(c, p, True) for _, c, _ in blobs]
-            nearest = min(range(len(dist)), key=dist.__getitem__)
-            if dist[nearest] <= s.base_search_px * scale:
-                main, base_ok = nearest, True
+    if base_px is not None and math.isfinite(base_px[0]) and math.isfinite(base_px[1]):
+        dist = [-cv2.pointPolygonTest(c, base_px, True) for _, c, _ in blobs]
+        nearest = min(range(len(dist)), key=dist.__getitem__)
+        if dist[nearest] <= s.base_search_px * scale:
+            main, base_ok = nearest, True
     x, y, w, h = blobs[main][2]
     box = [x, y, x + w, y + h]
     # Pieces within the gap distance (an occluder split the catheter), transitively.

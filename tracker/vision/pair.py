@@ -77,44 +77,44 @@ class PairSegmentation:
 
 
 def _unit_sphere(n: int) -> Array:
-    """n nearly uniform unit vectors (Fibonacci lattice), shape (n, 3)."""
+    """n nearly uniform unit vectors (Fibonacci lattice), as the columns of a (3, n) array."""
     k = np.arange(n) + 0.5
     z = 1.0 - 2.0 * k / n
     phi = np.pi * (3.0 - np.sqrt(5.0)) * k
     r = np.sqrt(1.0 - z**2)
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+    return np.array([r * np.cos(phi), r * np.sin(phi), z])
 
 
+# Sets of directions are (3, n) arrays: numpy works along rows of n far faster than along
+# rows of 3.
 _COARSE = _unit_sphere(200)  # about 15 degrees apart
 _CAP_RAD = np.radians(16.0)
 
 
 def _cap(n: int, angle_rad: float) -> Array:
-    """n nearly uniform unit vectors within ``angle_rad`` of +z, shape (n, 3)."""
+    """n nearly uniform unit vectors within ``angle_rad`` of +z, as the columns of (3, n)."""
     k = np.arange(n) + 0.5
     z = 1.0 - (1.0 - np.cos(angle_rad)) * k / n
     phi = np.pi * (3.0 - np.sqrt(5.0)) * k
     r = np.sqrt(1.0 - z**2)
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+    return np.array([r * np.cos(phi), r * np.sin(phi), z])
 
 
 _FINE = _cap(100, _CAP_RAD)  # about 3 degrees apart
 
 
-def _cross(a: Array, b: Array) -> Array:
-    """Cross product of two 3-vectors (np.cross is slow for single vectors)."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
+def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
+    """Cross product of two 3-vectors of Python floats (numpy costs far more for one)."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
 def _around(t: Array, cap: Array) -> Array:
-    """The cap's directions turned so that +z goes to the unit vector t."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _cross(t, helper)
-    u /= np.sqrt(u @ u)
-    v = _cross(t, u)
-    return cap @ np.stack([u, v, t])
+    """The cap's directions (3, n) turned so that +z goes to the unit vector t (3,)."""
+    t = tuple(t.tolist())
+    u = _cross(t, (1.0, 0.0, 0.0) if abs(t[0]) < 0.9 else (0.0, 1.0, 0.0))
+    norm = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    u = (u[0] / norm, u[1] / norm, u[2] / norm)
+    return np.array([u, _cross(t, u), t]).T @ cap
 
 
 def _tip_from_band(
@@ -143,30 +143,34 @@ def _tip_from_band(
     projection Jacobians at the centre (px/mm). Returns the tip in {W} and the misfit (the
     smallest sum of squared residuals, px^2).
     """
-    terms = []
-    for camera, seg, J in zip(cameras, views, jacobians, strict=True):
+    n = len(views)
+    # For directions T (columns), linear @ T is, per view (in rows): p's x and y, p's part
+    # along the measured direction, and sin a (the part along the viewing ray).
+    linear = np.empty((4 * n, 3))
+    JT = half_band_mm * np.array(jacobians)  # (views, 2, 3)
+    linear[:n], linear[n : 2 * n] = JT[:, 0], JT[:, 1]
+    directions = np.array([seg.tip_direction for seg in views])
+    linear[2 * n : 3 * n] = (directions[:, None, :] @ JT)[:, 0]
+    for k, camera in enumerate(cameras):
         x_cam = camera.R_cam_w @ centre_w + camera.t_cam_w
-        ray = (x_cam / np.sqrt(x_cam @ x_cam)) @ camera.R_cam_w  # viewing ray in {W}
-        terms.append((half_band_mm * J.T, ray, 0.25 * np.pi * seg.tube_radius_px,
-                      seg.tip_extent_px, seg.tip_direction))
+        linear[3 * n + k] = (x_cam / math.sqrt(x_cam @ x_cam)) @ camera.R_cam_w  # the ray
+    extent = np.array([[seg.tip_extent_px] for seg in views])
+    cap_px = np.array([[0.25 * math.pi * seg.tube_radius_px] for seg in views])
 
     def cost(T: Array) -> Array:
-        total = np.zeros(T.shape[0])
-        for JT, ray, cap_px, extent, direction in terms:
-            p = T @ JT
-            along = p @ direction
-            across = p - along[:, None] * direction
-            # The end disc adds to the extent along the measured direction whatever that is:
-            # seen end-on the band is a disc and its measured direction means little.
-            r_along = extent - along - cap_px * np.abs(T @ ray)
-            total += np.einsum("ij,ij->i", across, across) + r_along**2
-        return total
+        q = linear @ T
+        px, py, along, sin_a = q[:n], q[n : 2 * n], q[2 * n : 3 * n], q[3 * n :]
+        # |p|^2 - along^2 is p's offset across the direction, squared. The end disc adds to
+        # the extent along the measured direction whatever that is: seen end-on the band
+        # is a disc and its measured direction means little.
+        r_along = extent - along - cap_px * np.abs(sin_a)
+        return (px * px + py * py - along * along + r_along * r_along).sum(axis=0)
 
-    best = _COARSE[int(np.argmin(cost(_COARSE)))]
+    best = _COARSE[:, int(np.argmin(cost(_COARSE)))]
     fine = _around(best, _FINE)
     costs = cost(fine)
     k = int(np.argmin(costs))
-    return centre_w + half_band_mm * fine[k], float(costs[k])
+    return centre_w + half_band_mm * fine[:, k], float(costs[k])
 
 
 def segment_pair(
@@ -203,6 +207,8 @@ def segment_pair(
 _NUDGE_MM = 1e-3  # finite-difference step of the projection Jacobians at the tip band
 _NUDGES = np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
 _NUDGES.flags.writeable = False
+_EYE2 = np.eye(2)
+_EYE2.flags.writeable = False
 
 
 def _finite_point(p: Array) -> bool:
@@ -236,75 +242,80 @@ def combine_views(
     rows = [frame_points(view) for view in views]
     uv = [r[0] for r in rows]
     cov = [r[1] for r in rows]
-    rejected = np.zeros(uv[0].shape[0], bool)
+    n_rows = uv[0].shape[0]
     if rig is None:
-        return PairSegmentation(views, tuple(uv), tuple(cov), rejected)
+        return PairSegmentation(views, tuple(uv), tuple(cov), np.zeros(n_rows, bool))
     if rig.kind != "pinhole":
         raise ValueError("combine_views needs the pinhole rig the images were taken with")
-    tip_rows = np.concatenate([[True], segmenter.marker_is_tip])
+    tip_rows = segmenter.frame_tip_rows
     banded = [k for k, view in enumerate(views) if _finite_point(view.tip_band_px)]
     # Epipolar check: each row on its own points; the tip by its band centroids where two or
     # more views see the band (a far end is half a band away from a band's centre).
-    check = [u.copy() for u in uv]
+    check = uv
     if len(banded) >= 2:
+        check = [u.copy() for u in uv]
         for k, view in enumerate(views):
             check[k][tip_rows] = view.tip_band_px if k in banded else np.nan
-    found = np.isfinite(np.stack(check)).all(axis=-1)  # (views, rows)
-    points_w = np.full((rejected.size, 3), np.nan)
+    # A few points: Python floats from here on, numpy for the batches of points.
+    listed = [c.tolist() for c in check]
     groups: dict[tuple[int, ...], list[int]] = {}
-    for row, in_view in enumerate(found.T.tolist()):
-        seen = tuple(k for k, f in enumerate(in_view) if f)
+    for row in range(n_rows):
+        seen = tuple(k for k, points in enumerate(listed) if _finite_point(points[row]))
         if len(seen) >= 2:
             groups.setdefault(seen, []).append(row)
+    rejected = [False] * n_rows
     # The tip band's centre, projected with three nudged copies (the projection Jacobian
     # there by finite differences) in the same call as its group's points.
-    nudges = _NUDGES
+    centre_w = None
     centre_px: dict[int, Array] = {}
     for seen, members in groups.items():
         sub = rig.subset(seen)
-        points_w[members] = sub.reconstruct(*(check[k][members] for k in seen))
-        points = points_w[members]
+        everyone = len(members) == n_rows
+        points = sub.reconstruct(*(check[k] if everyone else check[k][members] for k in seen))
+        m = len(members)
         if members[0] == 0:
-            points = np.vstack([points, points_w[0] + nudges])
-        residual = np.zeros(len(members))
-        variance = np.zeros(len(members))
+            centre_w = points[0]
+            points = np.vstack([points, centre_w + _NUDGES])
+        residual = [0.0] * m
+        variance = [0.0] * m
         for k, camera in zip(seen, sub.views, strict=True):
             projected = camera.project(points)
             if members[0] == 0:
-                centre_px[k] = projected[len(members) :]
-            miss = projected[: len(members)] - check[k][members]
-            residual = np.maximum(residual, np.sqrt(np.einsum("ij,ij->i", miss, miss)))
-            c = cov[k][members]
-            variance += c[:, 0, 0] + c[:, 1, 1]
-        spread = np.sqrt(np.where(np.isfinite(variance), variance, 0.0))
-        bad = residual > np.maximum(s.epipolar_gate_px, 4.0 * spread)
-        rejected[np.asarray(members)[bad]] = True
+                centre_px[k] = projected[m:]
+            covariances = cov[k].tolist()
+            for j, ((u, v), row) in enumerate(zip(projected[:m].tolist(), members, strict=True)):
+                du, dv = u - listed[k][row][0], v - listed[k][row][1]
+                residual[j] = max(residual[j], math.sqrt(du * du + dv * dv))
+                variance[j] += covariances[row][0][0] + covariances[row][1][1]
+        for j, row in enumerate(members):
+            spread = math.sqrt(variance[j]) if math.isfinite(variance[j]) else 0.0
+            rejected[row] = residual[j] > max(s.epipolar_gate_px, 4.0 * spread)
     refined = bool(
         len(banded) >= 2
-        and all(found[k, 0] for k in banded)
         and not rejected[0]
         and all(math.isfinite(views[k].tip_extent_px * views[k].tube_radius_px) for k in banded)
     )
     if refined:
         half_band = 0.5 * s.band_length_mm
-        centre_w = points_w[0]
         jacobians = [(centre_px[k][1:] - centre_px[k][0]).T / _NUDGE_MM for k in banded]
         tip_w, misfit = _tip_from_band(
             [rig.views[k] for k in banded], [views[k] for k in banded], centre_w, jacobians,
             half_band,
         )
+        offset = tip_w - centre_w
         for k, J in zip(banded, jacobians, strict=True):
-            px_per_mm = math.sqrt(float(np.einsum("ij,ij->i", J, J).max()))
+            px_per_mm = math.sqrt(max(a * a + b * b + c * c for a, b, c in J.tolist()))
             # The tangent's uncertainty, and what the views disagree on (2 residuals per
             # view for 2 unknowns), as a variance of the tip in the image.
             extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit
             # Half a band from the centre: first order is exact to far below a pixel.
-            uv[k][tip_rows] = centre_px[k][0] + J @ (tip_w - centre_w)
-            cov[k][tip_rows] = views[k].tip_band_cov + extra * np.eye(2)
-    for u, c in zip(uv, cov, strict=True):
-        u[rejected] = np.nan
-        c[rejected] = np.nan
-    return PairSegmentation(views, tuple(uv), tuple(cov), rejected, refined)
+            uv[k][tip_rows] = centre_px[k][0] + J @ offset
+            cov[k][tip_rows] = views[k].tip_band_cov + extra * _EYE2
+    if any(rejected):
+        for u, c in zip(uv, cov, strict=True):
+            u[rejected] = np.nan
+            c[rejected] = np.nan
+    return PairSegmentation(views, tuple(uv), tuple(cov), np.array(rejected), refined)
 
 
 class PairSegmenter:

@@ -24,6 +24,7 @@ level they cannot be told apart, and do not need to be).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -32,6 +33,7 @@ import numpy as np
 Array = np.ndarray
 
 LEVELS = np.arange(256, dtype=np.float64)
+_UNSATURATED = (LEVELS > 0) & (LEVELS < 255)  # per gray level: neither black nor saturated
 _X = LEVELS / 255.0 - 0.5  # the background's gray level, centred, as the fit's variable
 _MIN_SAMPLES = 50
 
@@ -107,7 +109,7 @@ class BackgroundSamples:
         The grid in the image.
     levels : array (n,), uint8
         The background's gray levels on the grid (raveled).
-    gx, gy : arrays (n,), float64
+    gradient : array (2, n), float64
         Its central differences there (twice the gradient), x and y.
     usable : array (n,) of bool
         Not saturated (0 or 255) in the background.
@@ -116,8 +118,7 @@ class BackgroundSamples:
     rows: slice
     cols: slice
     levels: Array
-    gx: Array
-    gy: Array
+    gradient: Array
     usable: Array
 
 
@@ -131,30 +132,39 @@ def background_samples(background: Array, stride: int) -> BackgroundSamples:
     c0, cm, cp = (slice(o, width - 1, stride), slice(o - 1, width - 2, stride),
                   slice(o + 1, width, stride))
     levels = background[r0, c0].ravel()
-    gx = np.subtract(background[r0, cp], background[r0, cm], dtype=np.float64).ravel()
-    gy = np.subtract(background[rp, c0], background[rm, c0], dtype=np.float64).ravel()
-    return BackgroundSamples(r0, c0, levels, gx, gy, (levels > 0) & (levels < 255))
+    gradient = np.array([
+        np.subtract(background[r0, cp], background[r0, cm], dtype=np.float64).ravel(),
+        np.subtract(background[rp, c0], background[rm, c0], dtype=np.float64).ravel(),
+    ])
+    return BackgroundSamples(r0, c0, levels, gradient, _UNSATURATED.take(levels))
 
 
-def _solve_small(M: Array, v: Array) -> Array:
-    """Solve a small symmetric positive definite system (n <= 3) by Gauss-Jordan on Python
-    floats: for a few unknowns, numpy's LAPACK call costs more than the arithmetic."""
-    n = len(v)
-    a = [[float(M[i][j]) for j in range(n)] + [float(v[i])] for i in range(n)]
-    for k in range(n):
-        pivot = a[k][k]
-        if not abs(pivot) > 1e-12:
-            return np.zeros(n)
-        row = [value / pivot for value in a[k]]
-        a[k] = row
-        for i in range(n):
-            if i != k:
-                factor = a[i][k]
-                a[i] = [x - factor * y for x, y in zip(a[i], row, strict=True)]
-    return np.array([a[i][n] for i in range(n)])
+def _solve_small(M, v) -> list[float]:
+    """Solve a symmetric positive definite system of 2 or 3 unknowns (``M`` nested sequences,
+    ``v`` a sequence) on Python floats by Cramer's rule: for so few unknowns numpy's LAPACK
+    call costs far more than the arithmetic. Zeros when the system is singular (a pivot of
+    its Gaussian elimination, a ratio of leading minors, at most 1e-12)."""
+    if len(v) == 2:
+        (a, b), (_, d) = M
+        p, q = v
+        det = a * d - b * b
+        if not (a > 1e-12 and det > 1e-12 * a):
+            return [0.0, 0.0]
+        return [(d * p - b * q) / det, (a * q - b * p) / det]
+    (a, b, c), (_, d, e), (_, _, f) = M
+    p, q, r = v
+    # The adjugate (cofactors) of the symmetric matrix.
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    if not (a > 1e-12 and F > 1e-12 * a and det > 1e-12 * F):
+        return [0.0, 0.0, 0.0]
+    return [(A * p + B * q + C * r) / det, (B * p + D * q + E * r) / det,
+            (C * p + E * q + F * r) / det]
 
 
 _POWERS = np.stack([_X**k for k in range(5)])  # (5, 256): x^0 ... x^4 at every gray level
+_LEVELS_SQUARED = LEVELS**2
 
 
 def _tone_curve(counts: Array, sums: Array, degree: int) -> Array:
@@ -162,13 +172,13 @@ def _tone_curve(counts: Array, sums: Array, degree: int) -> Array:
     sums of the frame's gray levels (the fit's variable takes only 256 values, so the normal
     equations are sums over levels: ``sum_b counts(b) x(b)^(i + j)``)."""
     if degree == 0:
-        scale = float(sums @ LEVELS) / max(float(counts @ LEVELS**2), 1e-12)
+        scale = float(sums @ LEVELS) / max(float(counts @ _LEVELS_SQUARED), 1e-12)
         return scale * LEVELS
     n = degree + 1
-    moments = _POWERS[: 2 * n - 1] @ counts
-    M = [[moments[i + j] for j in range(n)] for i in range(n)]
-    coef = _solve_small(M, _POWERS[:n] @ sums)
-    return coef @ _POWERS[:n]
+    moments = (_POWERS[: 2 * n - 1] @ counts).tolist()
+    M = [moments[i : i + n] for i in range(n)]
+    coef = _solve_small(M, (_POWERS[:n] @ sums).tolist())
+    return np.array(coef) @ _POWERS[:n]
 
 
 def fit_photometry(
@@ -213,7 +223,8 @@ def fit_photometry(
         samples = background_samples(background, stride)
     frame_u8 = image[samples.rows, samples.cols].ravel()
     b_u8 = samples.levels
-    usable = samples.usable & (frame_u8 > 0) & (frame_u8 < 255)
+    usable = _UNSATURATED.take(frame_u8)
+    usable &= samples.usable
     n = int(np.count_nonzero(usable))
     clipped = 1.0 - n / max(frame_u8.size, 1)
     everywhere = n == frame_u8.size
@@ -228,11 +239,11 @@ def fit_photometry(
     lut = LEVELS
     if normalise:
         # A curvature needs a spread of gray levels, an offset at least two of them.
-        spread = np.sqrt(max(float(counts @ LEVELS**2) / n - mean_level**2, 0.0))
+        spread = math.sqrt(max(float(counts @ _LEVELS_SQUARED) / n - mean_level**2, 0.0))
         degree = 2 if spread >= 12.0 else (1 if spread >= 3.0 else 0)
         sums = np.bincount(b_u8, weights=frame, minlength=256)
         lut = _tone_curve(counts, sums, degree)
-    residual = frame - lut[b_u8]
+    residual = frame - lut.take(b_u8)
     magnitude = np.abs(residual)
     half = n // 2
     gate = max(4.0 * 1.4826 * float(np.partition(magnitude, half)[half]), 2.0)
@@ -243,35 +254,34 @@ def fit_photometry(
         counts_in = counts - np.bincount(b_out, minlength=256)
         sums_in = sums - np.bincount(b_out, weights=frame[out], minlength=256)
         lut = _tone_curve(counts_in, sums_in, degree)
-        residual = frame - lut[b_u8]
+        residual = frame - lut.take(b_u8)
         out = np.abs(residual) > gate
         n_out = int(np.count_nonzero(out))
     residual[out] = 0.0
     n_in = n - n_out
-    sigma = float(np.sqrt(residual @ residual / n_in)) if n_in > 10 else gate / 4.0
+    sigma = math.sqrt(float(residual @ residual) / n_in) if n_in > 10 else gate / 4.0
     # The slope of the tone curve at the background's mean gray level.
     level = min(max(round(mean_level), 1), 254)
-    gain = 0.5 * float(lut[level + 1] - lut[level - 1])
-    shift = np.zeros(2)
+    below, at, above = lut[level - 1 : level + 2].tolist()
+    gain = 0.5 * (above - below)
+    shift = [0.0, 0.0]
     if fit_shift and abs(gain) > 1e-6:
         # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d on the inliers (their
         # residual is zero elsewhere; the outliers' gradients are taken out of G).
-        gx, gy = samples.gx, samples.gy
-        if not everywhere:
-            gx, gy = gx[usable], gy[usable]
-        G = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
+        g = samples.gradient if everywhere else samples.gradient.compress(usable, axis=1)
+        G = g @ g.T
         if n_out:
-            ox, oy = gx[out], gy[out]
-            G -= np.array([[ox @ ox, ox @ oy], [ox @ oy, oy @ oy]])
+            g_out = g.compress(out, axis=1)
+            G -= g_out @ g_out.T
         # Central differences are twice the gradient.
-        shift = -2.0 * _solve_small(G, [gx @ residual, gy @ residual]) / gain
+        shift = [-2.0 * d / gain for d in _solve_small(G.tolist(), (g @ residual).tolist())]
     # An offset of the frame does not scale with the light: contrasts are fractions of
     # f(b) - f(0). (A gamma has no black level; f(0) of its fitted curve is the intercept of
     # the curve's chord over the background's levels, which keeps contrasts to first order.)
-    bound = 0.25 * abs(float(lut[level]))
+    bound = 0.25 * abs(at)
     dark = min(max(float(lut[0]), -bound), bound) if normalise else 0.0
     lut = np.maximum.accumulate(lut)
-    return Photometry(lut.astype(np.float32), shift, sigma, gain, clipped, True, dark)
+    return Photometry(lut.astype(np.float32), np.array(shift), sigma, gain, clipped, True, dark)
 
 
 def register_shift(

@@ -49,6 +49,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -84,6 +85,11 @@ class SegmentationFlag(enum.IntFlag):
     EXPOSURE = enum.auto()  # the frame is black, saturated or far from the background's gain
     CAMERA_MOVED = enum.auto()  # the frame is shifted from the background (re-registered)
     BACKGROUND_LOST = enum.auto()  # the background no longer registers: take a new one
+
+
+# The flags under which nothing is segmented (combined once: an enum operation costs about
+# a microsecond).
+NOT_SEGMENTED = SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST
 
 
 # ------------------------------------------------------------------------------- results
@@ -161,74 +167,60 @@ def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
     found : array (1 + n_markers,) of bool
         The quality flag of each row.
     """
-    n = seg.markers_px.shape[0] + 1
-    uv = np.empty((n, 2))
-    cov = np.empty((n, 2, 2))
-    found = np.empty(n, bool)
-    uv[0], uv[1:] = seg.tip_px, seg.markers_px
-    cov[0], cov[1:] = seg.tip_cov, seg.markers_cov
-    found[0], found[1:] = seg.tip_found, seg.markers_found
-    missing = ~found
-    uv[missing] = np.nan
-    cov[missing] = np.nan
-    return uv, cov, found
+    uv = np.concatenate([seg.tip_px[None], seg.markers_px])
+    cov = np.concatenate([seg.tip_cov[None], seg.markers_cov])
+    found = [seg.tip_found, *seg.markers_found.tolist()]
+    if not all(found):
+        missing = np.logical_not(found)
+        uv[missing] = np.nan
+        cov[missing] = np.nan
+    return uv, cov, np.array(found)
 
 
 # ---------------------------------------------------------------------------- the segmenter
-def _ends_cut(
-    xy: Array,
-    w: Array,
-    var_w: Array,
-    cut: Array,
-    direction: Array,
-    slab_px: float,
-) -> tuple[float, float]:
-    """Position of a tube's end past ``cut`` along ``direction`` by mass conservation.
-
-    The pixels past the cut carry ``M = e m`` of contrast, with m the mass per unit length
-    measured on the slab ``[-slab, 0]`` behind it, so the end lies at ``e = M / m`` (px).
-    Pixels straddling the cut count with the fraction of their footprint on each side.
-    Returns e, its variance from the pixel noise and m (contrast x px).
-    """
-    t = (xy - cut) @ direction
-    lam = abs(direction[0]) + abs(direction[1])  # a pixel's extent along the direction
-    beyond = np.minimum(np.maximum(t / lam + 0.5, 0.0), 1.0)
-    slab = np.minimum(np.maximum((t + slab_px) / lam + 0.5, 0.0), 1.0) - beyond
-    M = float(beyond @ w)
-    m = float(slab @ w) / slab_px
-    if not m > 0:
-        return float("nan"), float("nan"), float("nan")
-    e = M / m
-    grad = beyond / m - e * slab / (m * slab_px)
-    return e, float((grad**2) @ var_w), m
+# The catheter's pixels are held as flat arrays, one value per pixel, and their coordinates
+# as the rows of a (2, n) array: numpy works along a (n, 2) array two numbers at a time,
+# several times slower, and picks columns with take / compress several times faster than
+# with fancy indexing. Scalars and 2-vectors are Python floats: a numpy call on a few
+# numbers costs far more than the arithmetic.
 
 
-_EYE2 = np.eye(2)
-_EYE2.flags.writeable = False
-# What _end returns when there is no end: its arrays are read-only, shared by every result.
-_NO_END = tuple(
-    np.full(shape, np.nan) for shape in ((2,), (2, 2), (2,))
-) + (float("nan"),) * 3
-for _array in _NO_END[:3]:
+class _Band(NamedTuple):
+    """One radio-opaque band: its contrast-weighted centroid c (2,) and covariance (2, 2), px,
+    image; its distance from the base along the catheter (contrast-weighted mean, least and
+    greatest), px; ``member`` selects its pixels among the columns of ``pixels_xy`` (the
+    image coordinates (2, m) of every band pixel)."""
+
+    c: Array
+    cov: Array
+    d: float
+    d_min: float
+    d_max: float
+    pixels_xy: Array
+    member: Array
+
+
+# Read-only arrays of NaN: copied for a result's missing points (a copy costs less than
+# np.full); _NO_END is what _end returns when there is no end, shared by every result.
+_NAN2, _NAN22 = np.full(2, np.nan), np.full((2, 2), np.nan)
+_NO_END = (_NAN2, _NAN22, _NAN2) + (float("nan"),) * 3
+for _array in _NO_END[:2]:
     _array.flags.writeable = False
+_TIP_WITHHELD = SegmentationFlag.OVERLAP | SegmentationFlag.TIP_AT_BORDER
 
 
 def _median(values: Array) -> float:
-    """The median of a non-empty 1-D array (np.median costs far more for a few values)."""
+    """The median of a non-empty 1-D array, which it reorders (np.median costs far more for a
+    few values)."""
     n = values.size
-    part = np.partition(values, [(n - 1) // 2, n // 2])
-    return 0.5 * float(part[(n - 1) // 2] + part[n // 2])
+    values.partition([(n - 1) // 2, n // 2])
+    return 0.5 * float(values[(n - 1) // 2] + values[n // 2])
 
 
 def _finite_point(p: Array) -> bool:
     """Whether both coordinates of a point (2,) are finite (np.isfinite costs more for two
     numbers)."""
     return math.isfinite(p[0]) and math.isfinite(p[1])
-
-
-def _interpolate(points: Array, along: Array, at: Array) -> Array:
-    """Points (m, 2) sampled at increasing ``along`` (m,), linearly interpolated at ``at`` (k,)."""
-    return np.stack([np.interp(at, along, points[:, 0]), np.interp(at, along, points[:, 1])], -1)
 
 
 class Segmenter:
@@ -241,6 +233,8 @@ class Segmenter:
         band centred on its arclength (a marker at the tip arclength, if a model has one, is
         the tip point). The base and the tip carry bands too.
     settings : SegmentationSettings
+
+    Not for several threads at once (it reuses its pixel graph from image to image).
     """
 
     def __init__(self, catheter: Catheter, settings: SegmentationSettings = DEFAULT_SETTINGS):
@@ -251,6 +245,8 @@ class Segmenter:
         markers = np.asarray(catheter.marker_arclengths_mm, float)
         self.n_markers = markers.size
         self.marker_is_tip = np.abs(markers - L) < 1e-6
+        # The rows of a Frame's view that are the tip: row 0, and a marker at the tip.
+        self.frame_tip_rows = np.concatenate([[True], self.marker_is_tip])
         self.has_tip_band = bool(settings.tip_band)
         interior = np.flatnonzero(~self.marker_is_tip)
         self.interior_markers = interior
@@ -260,6 +256,10 @@ class Segmenter:
         k = max(int(settings.closing_px), 1)
         self._kernel = np.ones((k, k), np.uint8) if k > 1 else None
         self._floor = settings.sigma_floor_px**2 * np.eye(2)
+        # The markers' points and covariances with none found, copied for every result.
+        n = self.n_markers
+        self._no_markers = np.full((n, 2), np.nan), np.full((n, 2, 2), np.nan)
+        self._graph = PixelGraph()  # rebuilt for every image
 
     # ---------------------------------------------------------------- public
     def segment(
@@ -308,7 +308,7 @@ class Segmenter:
         if photometry is None:
             photometry = self.photometry(image, background)
         flags = self.photometry_flags(photometry)
-        if flags & (SegmentationFlag.EXPOSURE | SegmentationFlag.BACKGROUND_LOST):
+        if flags & NOT_SEGMENTED:
             return self.empty_result(flags, photometry)
         smoothed, coarse = detection_backgrounds(background) if prepared is None else prepared
         found = None
@@ -351,73 +351,91 @@ class Segmenter:
             or not 1.0 / s.max_gain_change <= photometry.gain <= s.max_gain_change
         ):
             flags |= SegmentationFlag.EXPOSURE
-        if np.hypot(*photometry.shift_px) > s.camera_moved_px:
+        if math.hypot(*photometry.shift_px.tolist()) > s.camera_moved_px:
             flags |= SegmentationFlag.CAMERA_MOVED
         return flags
 
     # ---------------------------------------------------------------- steps
     def empty_result(self, flags: SegmentationFlag, photometry: Photometry) -> ViewSegmentation:
         """A result with every point missing (NaN) and these flags."""
-        n = self.n_markers
-        nan2 = np.full(2, np.nan)
+        markers, markers_cov = self._no_markers
         return ViewSegmentation(
             flags=flags,
             noise_sigma_gray=photometry.sigma_gray,
-            base_px=nan2,
-            base_cov=np.full((2, 2), np.nan),
-            tip_px=nan2.copy(),
-            tip_cov=np.full((2, 2), np.nan),
-            markers_px=np.full((n, 2), np.nan),
-            markers_cov=np.full((n, 2, 2), np.nan),
-            markers_found=np.zeros(n, bool),
+            base_px=_NAN2.copy(),
+            base_cov=_NAN22.copy(),
+            tip_px=_NAN2.copy(),
+            tip_cov=_NAN22.copy(),
+            markers_px=markers.copy(),
+            markers_cov=markers_cov.copy(),
+            markers_found=np.zeros(self.n_markers, bool),
             centreline_px=np.zeros((0, 2)),
             bands_px=np.zeros((0, 2)),
-            tip_band_px=nan2.copy(),
-            tip_band_cov=np.full((2, 2), np.nan),
-            tip_direction=nan2.copy(),
+            tip_band_px=_NAN2.copy(),
+            tip_band_cov=_NAN22.copy(),
+            tip_direction=_NAN2.copy(),
             photometry=photometry,
         )
+
+    def _catheter_pixels(self, mask: Array) -> tuple[Array, Array, Array] | None:
+        """The rows and columns (intp, row-major order) of the mask's pixels in blobs of at
+        least ``min_area_px``, and the mask of those blobs; None if there are none."""
+        # cv2.findNonZero: the pixels as np.nonzero gives them, for a fraction of its cost;
+        # the blobs' areas only when there are several (connectedComponentsWithStats costs
+        # several times more than the labels and a bincount).
+        n_labels, labels = cv2.connectedComponents(mask, connectivity=8)
+        if n_labels < 2:
+            return None
+        points = cv2.findNonZero(mask).reshape(-1, 2)
+        if n_labels == 2:
+            if points.shape[0] < self.settings.min_area_px:
+                return None
+        else:
+            label = labels[points[:, 1], points[:, 0]]
+            big = np.bincount(label) >= self.settings.min_area_px
+            big[0] = False
+            if not big.any():
+                return None
+            # Usually every blob in the region is large: keep the mask as it is.
+            if not big[1:].all():
+                mask = big[labels].view(np.uint8)
+                points = points[big[label]]
+        xs, ys = np.array(points.T, np.intp, order="C")
+        return ys, xs, mask
 
     def _segment_roi(self, image, background, photometry, m, roi, base_px, flags):
         s = self.settings
         sigma = photometry.sigma_gray
-        x0, y0, x1, y1 = roi
+        x0, y0 = roi[0], roi[1]
         height, width = image.shape
         if self._kernel is not None:
             m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, self._kernel)
-        # The mask's pixels in row-major order (cv2.findNonZero: as np.nonzero, for a fraction
-        # of its cost), and the area of their blobs (cv2.connectedComponentsWithStats costs
-        # several times more than the labels and a bincount).
-        points = cv2.findNonZero(m)
-        if points is None:
+        pixels = self._catheter_pixels(m)
+        if pixels is None:
             return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
-        points = points.reshape(-1, 2)
-        _, labels = cv2.connectedComponents(m, connectivity=8)
-        lab = labels[points[:, 1], points[:, 0]]
-        big = np.bincount(lab) >= s.min_area_px
-        big[0] = False
-        if not big.any():
-            return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
-        # Usually every blob in the region is large: keep the mask as it is.
-        if big[1:].all():
-            keep = m
-        else:
-            keep = big[labels].view(np.uint8)
-            points = points[big[lab]]
-        xs, ys = points[:, 0], points[:, 1]
+        ys, xs, keep = pixels
         # The background as the frame would show it, and the light that is: the contrast is
         # the fraction of that light the catheter blocks.
-        lit = photometry.lut[background[y0:y1, x0:x1][ys, xs]].astype(np.float64)
-        bg = np.maximum(lit - photometry.dark_gray, 1.0)
-        w = np.maximum(lit - image[y0:y1, x0:x1][ys, xs], 0.0) / bg
-        var_w = (sigma / bg) ** 2
-        xy = np.column_stack([xs + x0, ys + y0]).astype(np.float64)
+        flat = ys * width
+        flat += xs
+        flat += y0 * width + x0
+        lit = photometry.lut.take(background.take(flat)).astype(np.float64)
+        bg = lit - photometry.dark_gray
+        np.maximum(bg, 1.0, out=bg)
+        w = lit - image.take(flat)
+        np.maximum(w, 0.0, out=w)
+        w /= bg
+        var_w = sigma / bg
+        var_w *= var_w
+        xy = np.empty((2, xs.size))
+        np.add(xs, x0, out=xy[0])
+        np.add(ys, y0, out=xy[1])
         # ---- pixel graph (8-neighbours) and the geodesic sweep from the base
-        graph = PixelGraph(ys, xs, m.shape, xy)
+        graph = self._graph
+        graph.build(ys, xs, m.shape, xy)
         if base_px is not None:
-            rel = xy - np.asarray(base_px, float)
-            seed = int(np.argmin(np.einsum("ij,ij->i", rel, rel)))
-            dist, joined = graph.sweep(seed, s.max_gap_px)
+            dx, dy = xy[0] - float(base_px[0]), xy[1] - float(base_px[1])
+            dist, joined = graph.sweep(int((dx * dx + dy * dy).argmin()), s.max_gap_px)
         else:
             # Double sweep: the farthest pixel from anywhere is an end; the thicker end is the base.
             d0, joined = graph.sweep(0, s.max_gap_px)
@@ -434,48 +452,50 @@ class Segmenter:
                 dist, _ = graph.sweep(end_b, 0.0)
         if joined:
             flags |= SegmentationFlag.FRAGMENTED
-        reach = np.isfinite(dist)
-        if not reach.all():
-            xy, w, var_w, dist = xy[reach], w[reach], var_w[reach], dist[reach]
+        D = float(dist.max())
+        if not math.isfinite(D):
+            reach = np.isfinite(dist)
+            xs, ys, xy, w, var_w, dist = (
+                xs[reach], ys[reach], xy.compress(reach, axis=1), w[reach], var_w[reach],
+                dist[reach],
+            )
+            D = float(dist.max())
 
         def thickness_of() -> Array:
             radius = cv2.distanceTransform(keep, cv2.DIST_L2, cv2.DIST_MASK_5)
-            return radius[ys[reach], xs[reach]]
+            return radius[ys, xs]
 
-        band_pixel = w >= s.band_contrast
-        D = float(dist.max())
-        # ---- centreline samples
-        bins = (dist / s.bin_px).astype(np.int64)
+        # ---- centreline samples: x, y and distance from the base
+        bins = (dist / s.bin_px).astype(np.intp)
         count = np.bincount(bins, weights=w)
-        cx = np.bincount(bins, weights=w * xy[:, 0])
-        cy = np.bincount(bins, weights=w * xy[:, 1])
-        cd = np.bincount(bins, weights=w * dist)
-        ok = count > 0
-        centreline = np.column_stack([cx[ok] / count[ok], cy[ok] / count[ok]])
-        centre_dist = cd[ok] / count[ok]
+        wxy = xy * w
+        line = np.array([np.bincount(bins, weights=wxy[0]), np.bincount(bins, weights=wxy[1]),
+                         np.bincount(bins, weights=w * dist)])
+        if not count.min() > 0:
+            ok = count > 0
+            count, line = count[ok], line.compress(ok, axis=1)
+        line /= count
+        centreline = line[:2].T.copy()
         # ---- bands along the catheter, and checks that the view is not self-overlapping
-        bands = self._bands(xy, w, var_w, dist, band_pixel, roi, m.shape)
-        overlap = self._overlapping(bins, thickness_of, bands)
+        bands = self._bands(xs, ys, xy, w, var_w, dist, roi, m.shape)
+        overlap = self._overlapping(bins, D, thickness_of, bands)
         tol = max(3.0, 2.0 * s.bin_px)
         base_band = tip_band = None
-        if bands and bands[0]["d_min"] <= tol:
+        if bands and bands[0].d_min <= tol:
             base_band = bands.pop(0)
-        if self.has_tip_band and bands and bands[-1]["d_max"] >= D - tol:
+        if self.has_tip_band and bands and bands[-1].d_max >= D - tol:
             tip_band = bands.pop(-1)
         # ---- ends
-        line = (centreline, centre_dist)
-        base, base_cov, _, _, _, base_mass = self._end(
-            xy, w, var_w, dist, line, base_band, at_tip=False, D=D
+        (base, base_cov, _, _, _, base_mass), tip_end = self._ends(
+            xy, w, var_w, dist, line, base_band, tip_band, D
         )
-        tip, tip_cov, tip_direction, tip_extent, tube_radius, tip_mass = self._end(
-            xy, w, var_w, dist, line, tip_band, at_tip=True, D=D
-        )
+        tip, tip_cov, tip_direction, tip_extent, tube_radius, tip_mass = tip_end
         # Both end bands block the same fraction of light, so the ratio of their contrast
         # per unit length is the ratio of the tube widths there, whatever the blur: the
         # distal tube is thinner. A far end as wide as the base is the catheter folded back
         # onto itself in this view (its bending plane seen edge-on), with another band there.
-        far = xy[dist >= D - tol]
-        (lo_x, lo_y), (hi_x, hi_y) = far.min(axis=0).tolist(), far.max(axis=0).tolist()
+        far = xy.compress(dist >= D - tol, axis=1)
+        (lo_x, lo_y), (hi_x, hi_y) = far.min(axis=1).tolist(), far.max(axis=1).tolist()
         at_border = (
             lo_x < s.border_px
             or lo_y < s.border_px
@@ -486,7 +506,7 @@ class Segmenter:
         folded = bool(
             tip_band is not None and not at_border and width_ratio > s.max_tip_width_ratio
         )
-        nan2 = np.full(2, np.nan)
+        nan2 = _NAN2.copy()
         if overlap or folded:
             # The order along the catheter is unreliable: report nothing rather than a guess.
             flags |= SegmentationFlag.OVERLAP
@@ -498,23 +518,21 @@ class Segmenter:
             flags |= SegmentationFlag.TIP_AT_BORDER
             tip = tip_direction = nan2
             tip_band = None
-        elif self.has_tip_band and tip_band is None and not flags & SegmentationFlag.OVERLAP:
+        elif self.has_tip_band and tip_band is None and not overlap and not folded:
             # The far end carries no band: the tip is hidden, or the distal segment curls back
             # over itself in this view and its band may have merged with another. Either way
             # the bands cannot be told apart safely.
             flags |= SegmentationFlag.TIP_NOT_FOUND
             tip = tip_direction = nan2
             bands = []
-        if not _finite_point(tip) and not flags & (
-            SegmentationFlag.OVERLAP | SegmentationFlag.TIP_AT_BORDER
-        ):
+        tip_found = _finite_point(tip)
+        if not tip_found and not flags & _TIP_WITHHELD:
             flags |= SegmentationFlag.TIP_NOT_FOUND  # too short a centreline for an end
         # ---- markers
         n_mk = self.n_markers
-        markers = np.full((n_mk, 2), np.nan)
-        markers_cov = np.full((n_mk, 2, 2), np.nan)
+        markers, markers_cov = (a.copy() for a in self._no_markers)
         found = np.zeros(n_mk, bool)
-        if _finite_point(tip):
+        if tip_found:
             markers[self.marker_is_tip] = tip
             markers_cov[self.marker_is_tip] = tip_cov
             found[self.marker_is_tip] = True
@@ -523,10 +541,13 @@ class Segmenter:
             assigned, extra = self._assign(bands, base_band, tip_band, D)
             if extra:
                 flags |= SegmentationFlag.EXTRA_BANDS
-            for k, band in zip(interior, assigned, strict=True):
-                if band is not None:
-                    markers[k], markers_cov[k], found[k] = band["c"], band["cov"], True
-            if not found[interior].all():
+            missing = False
+            for k, band in zip(interior.tolist(), assigned, strict=True):
+                if band is None:
+                    missing = True
+                else:
+                    markers[k], markers_cov[k], found[k] = band.c, band.cov, True
+            if missing:
                 flags |= SegmentationFlag.MARKER_MISSING
         floor = self._floor
         all_bands = [b for b in ([base_band] + bands + [tip_band]) if b is not None]
@@ -541,9 +562,9 @@ class Segmenter:
             markers_cov=markers_cov + floor,
             markers_found=found,
             centreline_px=centreline,
-            bands_px=np.array([b["c"] for b in all_bands]).reshape(-1, 2),
-            tip_band_px=nan2 if tip_band is None else tip_band["c"],
-            tip_band_cov=np.full((2, 2), np.nan) if tip_band is None else tip_band["cov"] + floor,
+            bands_px=np.array([b.c for b in all_bands]).reshape(-1, 2),
+            tip_band_px=nan2 if tip_band is None else tip_band.c,
+            tip_band_cov=_NAN22.copy() if tip_band is None else tip_band.cov + floor,
             tip_direction=tip_direction if tip_band is not None else nan2,
             tip_extent_px=float(tip_extent) if tip_band is not None else float("nan"),
             tube_radius_px=float(tube_radius),
@@ -551,7 +572,7 @@ class Segmenter:
             photometry=photometry,
         )
 
-    def _overlapping(self, bins: Array, thickness_of, bands: list) -> bool:
+    def _overlapping(self, bins: Array, D: float, thickness_of, bands: list[_Band]) -> bool:
         """Whether the catheter touches, crosses or folds onto itself in this view.
 
         Two signs. A stretch of the centreline where the mask has many more pixels per
@@ -561,16 +582,17 @@ class Segmenter:
         fan the samples out. And a "band" much longer than a band can look (the tube folded
         onto itself is as dark as a band).
 
-        ``thickness_of()`` returns each pixel's inscribed radius; it is only called when the
-        counts are suspicious.
+        ``bins`` are the pixels' centreline samples, ``D`` the largest distance from the
+        base; ``thickness_of()`` returns each pixel's inscribed radius; it is only called
+        when the counts are suspicious.
         """
         s = self.settings
-        n_bins = int(bins.max()) + 1
+        n_bins = int(D / s.bin_px) + 1  # bins.max() + 1
         count = np.bincount(bins, minlength=n_bins).astype(float)
         # A band seen end-on is a disc wider than the tube: leave its samples and their
         # neighbours out.
         for b in bands:
-            count[max(int(b["d_min"] / s.bin_px) - 1, 0) : int(b["d_max"] / s.bin_px) + 2] = 0.0
+            count[max(int(b.d_min / s.bin_px) - 1, 0) : int(b.d_max / s.bin_px) + 2] = 0.0
         count[:2] = 0.0
         count[-2:] = 0.0
         ok = count > 0
@@ -585,118 +607,170 @@ class Segmenter:
             if np.any(thickness[wide] > s.overlap_ratio * typical_r):
                 return True
         longest = 1.6 * typical_n / s.bin_px + 2.0 * s.bin_px
-        return any(b["d_max"] - b["d_min"] > longest for b in bands)
+        return any(b.d_max - b.d_min > longest for b in bands)
 
-    def _bands(self, xy, w, var_w, dist, band_pixel, roi, shape):
+    def _bands(self, xs, ys, xy, w, var_w, dist, roi, shape) -> list[_Band]:
         """Connected groups of band pixels (8-neighbours), ordered along the catheter.
 
         Connected in the image, not along the geodesic distance: where the catheter hooks
-        back, two bands can lie at the same distance from the base.
+        back, two bands can lie at the same distance from the base. ``xs``, ``ys``: the
+        pixels in the region ``roi`` of the given shape.
         """
         s = self.settings
-        idx = np.flatnonzero(band_pixel)
+        idx = (w >= s.band_contrast).nonzero()[0]
         if idx.size == 0:
             return []
-        bx = (xy[idx, 0] - roi[0]).astype(np.intp)
-        by = (xy[idx, 1] - roi[1]).astype(np.intp)
-        bmask = np.zeros(shape, np.uint8)
-        bmask[by, bx] = 1
-        n_lab, labels = cv2.connectedComponents(bmask, connectivity=8)
-        lab = labels[by, bx]
-        order = np.argsort(lab, kind="stable")
-        sorted_idx = idx[order]
-        starts = np.concatenate([[0], np.flatnonzero(np.diff(lab[order])) + 1])
-        stops = np.append(starts[1:], idx.size)
-        d_sorted = dist[sorted_idx]
-        d_min = np.minimum.reduceat(d_sorted, starts)
-        d_max = np.maximum.reduceat(d_sorted, starts)
-        # Per band, by sums over its pixels: the contrast-weighted centroid and its covariance
-        # sum(var (p - c)(p - c)^T) / W^2 (the contrast's noise through the centroid), in the
-        # region's frame.
-        n = int(n_lab)
-        excess = w[idx] - s.band_contrast
-        x, y, v = bx.astype(np.float64), by.astype(np.float64), var_w[idx]
-        W = np.bincount(lab, excess, n)
-        cx = np.bincount(lab, excess * x, n) / np.where(W > 0, W, 1.0)
-        cy = np.bincount(lab, excess * y, n) / np.where(W > 0, W, 1.0)
-        d_mean = np.bincount(lab, excess * dist[idx], n) / np.where(W > 0, W, 1.0)
-        V, Vx, Vy = (np.bincount(lab, v * a, n) for a in (1.0, x, y))
-        Vxx, Vxy, Vyy = (np.bincount(lab, v * a, n) for a in (x * x, x * y, y * y))
-        cov_xx = (Vxx - 2.0 * cx * Vx + cx * cx * V) / np.where(W > 0, W * W, 1.0)
-        cov_xy = (Vxy - cx * Vy - cy * Vx + cx * cy * V) / np.where(W > 0, W * W, 1.0)
-        cov_yy = (Vyy - 2.0 * cy * Vy + cy * cy * V) / np.where(W > 0, W * W, 1.0)
-        bands = []
-        for j, (start, stop) in enumerate(zip(starts, stops, strict=True)):
-            if stop - start < s.min_band_area_px:
+        bx, by = xs[idx], ys[idx]
+        flat = by * shape[1]
+        flat += bx
+        band_mask = np.zeros(shape, np.uint8)
+        band_mask.put(flat, 1)
+        n, labels = cv2.connectedComponents(band_mask, connectivity=8)
+        # member[k]: which band pixels carry the label k + 1 (every label has some).
+        member = labels.take(flat) == np.arange(1, n)[:, None]
+        size = member.sum(axis=1).tolist()
+        # Per band, by sums over its pixels (products with the membership matrix): the
+        # contrast-weighted centroid and its covariance sum(var (p - c)(p - c)^T) / W^2 (the
+        # contrast's noise through the centroid), in the region's frame, and the distances.
+        d = dist[idx]
+        terms = np.array([np.ones(idx.size), bx, by, bx * bx, bx * by, by * by, d])
+        by_contrast = ((member * (w[idx] - s.band_contrast)) @ terms.T).tolist()
+        by_variance = ((member * var_w[idx]) @ terms[:6].T).tolist()
+        d_min = np.where(member, d, np.inf).min(axis=1).tolist()
+        d_max = np.where(member, d, -np.inf).max(axis=1).tolist()
+        kept, centres, covs = [], [], []
+        for k in range(n - 1):
+            if size[k] < s.min_band_area_px:
                 continue
-            k = lab[order[start]]
-            bands.append(dict(
-                c=np.array([cx[k] + roi[0], cy[k] + roi[1]]),
-                cov=np.array([[cov_xx[k], cov_xy[k]], [cov_xy[k], cov_yy[k]]]),
-                d=float(d_mean[k]), d_min=float(d_min[j]), d_max=float(d_max[j]),
-                sel=sorted_idx[start:stop],
-            ))
-        bands.sort(key=lambda b: b["d"])
+            W, Wx, Wy, _, _, _, Wd = by_contrast[k]
+            V, Vx, Vy, Vxx, Vxy, Vyy = by_variance[k]
+            safe = W if W > 0 else 1.0
+            cx, cy, d_mean = Wx / safe, Wy / safe, Wd / safe
+            safe = W * W if W > 0 else 1.0
+            cov_xy = (Vxy - cx * Vy - cy * Vx + cx * cy * V) / safe
+            centres.append((cx + roi[0], cy + roi[1]))
+            covs.append(((Vxx - 2.0 * cx * Vx + cx * cx * V) / safe, cov_xy,
+                         cov_xy, (Vyy - 2.0 * cy * Vy + cy * cy * V) / safe))
+            kept.append((d_mean, d_min[k], d_max[k], member[k]))
+        if not kept:
+            return []
+        centres = np.array(centres)
+        covs = np.array(covs).reshape(-1, 2, 2)
+        pixels_xy = xy.take(idx, axis=1)
+        bands = [_Band(c, cov, d_mean, d_lo, d_hi, pixels_xy, mine)
+                 for c, cov, (d_mean, d_lo, d_hi, mine) in zip(centres, covs, kept, strict=True)]
+        bands.sort(key=lambda b: b.d)
         return bands
 
-    def _end(self, xy, w, var_w, dist, line, band, at_tip, D):
+    def _ends(self, xy, w, var_w, dist, line, base_band, tip_band, D):
+        """The base and the tip end of the centreline (:meth:`_end`).
+
+        The cut at an end is the end band's centroid, or without a band the centreline two
+        bins from the end; the direction there is the centreline's tangent from a
+        second-order one-sided difference of samples one and two band-lengths back (samples
+        right at an end are skewed: the end's far corner is geodesically farthest).
+        ``line`` (3, m) is the centreline's x, y and distance from the base.
+        """
+        if line.shape[1] < 4:
+            return _NO_END, _NO_END
+        step = 2.0 * self.settings.bin_px
+        at = []  # per end: the cut's distance from the base (if no band) and two samples back
+        cuts = []
+        for band, d_cut, sign in ((base_band, step, 1.0), (tip_band, D - step, -1.0)):
+            if band is not None:
+                d_cut = band.d
+            else:
+                at.append(d_cut)
+            cuts.append(d_cut)
+            at += [d_cut + sign * step, d_cut + sign * (2.0 * step)]
+        px = np.interp(at, line[2], line[0]).tolist()
+        py = np.interp(at, line[2], line[1]).tolist()
+        ends = []
+        for band, d_cut, at_tip in ((base_band, cuts[0], False), (tip_band, cuts[1], True)):
+            if band is not None:
+                cut = band.c
+            else:
+                cut = np.array([px.pop(0), py.pop(0)])
+            samples = (px.pop(0), py.pop(0)), (px.pop(0), py.pop(0))
+            ends.append(self._end(xy, w, var_w, dist, band, d_cut, cut, samples, at_tip))
+        return ends
+
+    def _end(self, xy, w, var_w, dist, band, d_cut, cut, samples, at_tip):
         """Sub-pixel end of the centreline (tip or base) and its covariance.
 
-        The cut is the end band's centroid (or a centreline sample two bins from the end);
-        the direction is the centreline tangent there, from a second-order one-sided
-        difference of samples one and two band-lengths back (samples right at an end are
-        skewed: the end's far corner is geodesically farthest).
+        The end lies past the cut ``cut`` (at ``d_cut`` from the base) by mass conservation:
+        the pixels past it carry ``M = e m`` of contrast, with m the mass per unit length
+        measured on a slab behind the cut, so ``e = M / m`` (pixels straddling the cut count
+        with the fraction of their footprint on each side). ``samples`` are the centreline
+        one and two band-lengths back from the cut (:meth:`_ends`).
 
         Returns the end (2,), its covariance (2, 2), the unit direction toward the end, the
         end's distance past the cut (px), the tube's image radius (px) and its contrast per
         unit length (contrast x px: the band's contrast times the tube's image width).
         """
         s = self.settings
-        centreline, centre_dist = line
-        if centreline.shape[0] < 4:
-            return _NO_END
         step = 2.0 * s.bin_px
-        sign = -1.0 if at_tip else 1.0
-        if band is not None:
-            d_cut = band["d"]
-            p = _interpolate(centreline, centre_dist, d_cut + sign * np.array([step, 2 * step]))
-            cut, cut_cov = band["c"], band["cov"]
-        else:
-            d_cut = D - step if at_tip else step
-            p = _interpolate(centreline, centre_dist, d_cut + sign * np.array([0, step, 2 * step]))
-            cut, p = p[0], p[1:]
-            cut_cov = np.zeros((2, 2))
-        direction = 3.0 * cut - 4.0 * p[0] + p[1]  # toward the end in both cases
-        norm = math.hypot(direction[0], direction[1])
+        cut_x, cut_y = cut.tolist()
+        (p0x, p0y), (p1x, p1y) = samples
+        dx = 3.0 * cut_x - 4.0 * p0x + p1x  # toward the end in both cases
+        dy = 3.0 * cut_y - 4.0 * p0y + p1y
+        norm = math.hypot(dx, dy)
         if norm < 1e-9:
             return _NO_END
-        direction = direction / norm
+        dx, dy = dx / norm, dy / norm
+        direction = np.array([dx, dy])
         if band is not None:
-            t_band = (xy[band["sel"]] - cut) @ direction
-            slab = min(max(-float(t_band.min()), 0.5), s.end_slab_px)
+            behind_band = (direction @ band.pixels_xy.compress(band.member, axis=1)).min() - (
+                cut_x * dx + cut_y * dy
+            )
+            slab = min(max(-float(behind_band), 0.5), s.end_slab_px)
         else:
             slab = s.end_slab_px
         reach = 3.0 * step + slab
-        near = (dist >= d_cut - slab - step) if at_tip else (dist <= d_cut + slab + step)
-        near = np.flatnonzero(near)
-        rel = xy[near] - cut
-        near = near[np.einsum("ij,ij->i", rel, rel) <= reach**2]
+        side = (dist >= d_cut - slab - step) if at_tip else (dist <= d_cut + slab + step)
+        near = side.nonzero()[0]
+        rel = xy.take(near, axis=1)
+        rel[0] -= cut_x
+        rel[1] -= cut_y
+        inside = (np.add.reduce(rel * rel) <= reach**2).nonzero()[0]
+        near = near[inside]
+        t = direction @ rel.take(inside, axis=1)
         w_near = w[near]
-        e, var_e, m_per_px = _ends_cut(xy[near], w_near, var_w[near], cut, direction, slab)
-        if not math.isfinite(e):
+        # Each pixel's fraction past the cut and in the slab [-slab, 0] behind it, its
+        # extent along the direction being |dx| + |dy|.
+        part = np.array([t, t + slab])
+        part /= abs(dx) + abs(dy)
+        part += 0.5
+        np.maximum(part, 0.0, out=part)
+        np.minimum(part, 1.0, out=part)
+        part[1] -= part[0]
+        mass, behind = (part @ w_near).tolist()
+        m_per_px = behind / slab
+        if not m_per_px > 0:
             return _NO_END
+        e = mass / m_per_px
+        # The noise of e through its gradient a part[0] + b part[1] over the pixels.
+        a, b = 1.0 / m_per_px, -e / (m_per_px * slab)
+        (s00, s01), (_, s11) = ((part * var_w[near]) @ part.T).tolist()
+        var_e = a * a * s00 + 2.0 * a * b * s01 + b * b * s11
         # The end disc of a tube seen obliquely sticks out past the end point by up to
         # pi/4 of the radius (m / 2 per unit contrast); half of that is the uncertainty of a
         # single view (segment_pair removes it with both views).
         k = int(0.9 * (w_near.size - 1))
-        contrast = float(np.partition(w_near, k)[k])  # the plateau, robust to noise
+        w_near.partition(k)
+        contrast = float(w_near[k])  # the plateau, robust to noise
         radius_px = 0.5 * m_per_px / max(contrast, 1e-6)
-        var_e = var_e + (np.pi / 8.0 * radius_px) ** 2
-        dd = np.multiply.outer(direction, direction)
+        var_e = var_e + (math.pi / 8.0 * radius_px) ** 2
         # Across: the end moves sideways with the direction's error.
         var_across = (e * s.tip_direction_sigma_rad) ** 2
-        cov = cut_cov + var_e * dd + var_across * (_EYE2 - dd)
-        return cut + e * direction, cov, direction, e, radius_px, m_per_px
+        (c00, c01), (c10, c11) = band.cov.tolist() if band is not None else ((0.0, 0.0),) * 2
+        dxx, dxy, dyy = dx * dx, dx * dy, dy * dy
+        cov = np.array([
+            [c00 + var_e * dxx + var_across * (1.0 - dxx), c01 + var_e * dxy - var_across * dxy],
+            [c10 + var_e * dxy - var_across * dxy, c11 + var_e * dyy + var_across * (1.0 - dyy)],
+        ])
+        end = np.array([cut_x + e * dx, cut_y + e * dy])
+        return end, cov, direction, e, radius_px, m_per_px
 
     def _assign(self, bands, base_band, tip_band, D):
         """Interior bands -> interior markers: in order when the count matches, else by position."""
@@ -705,10 +779,10 @@ class Segmenter:
             return list(bands), False
         if not bands:
             return [None] * n, False
-        start = base_band["d"] if base_band is not None else 0.0
-        end = tip_band["d"] if tip_band is not None else D
+        start = base_band.d if base_band is not None else 0.0
+        end = tip_band.d if tip_band is not None else D
         span = max(end - start, 1e-9)
-        frac = np.array([(b["d"] - start) / span for b in bands])
+        frac = np.array([(b.d - start) / span for b in bands])
         out: list = [None] * n
         used = set()
         for j in np.argsort(np.abs(frac[:, None] - self.interior_fractions[None, :]).min(axis=0)):
