@@ -23,6 +23,10 @@ thread's CPU time, and the ratio of the CPU medians to the plain path. Target: a
 most 3 ms median with normalisation and the background update on (the cameras run at 20
 frames per second: ten times faster, with room to spare). ``--load N`` starts N busy
 processes for the duration of the timing, to see the cost on a loaded machine.
+
+Also the time the compiled kernels (:mod:`tracker.vision.kernels`) take to be ready before
+the first frame: loaded from numba's cache, or compiled on a first run (a few seconds; the
+segmenters do it when they are made, never on a frame).
 """
 
 from __future__ import annotations
@@ -39,11 +43,13 @@ import platform  # noqa: E402
 import time  # noqa: E402
 
 import cv2  # noqa: E402
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import verdict  # noqa: E402  (puts the repository on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from replay.simulation.render import Renderer, default_render_rig  # noqa: E402
+from tracker.vision import kernels  # noqa: E402
 from tracker.vision.pair import PairSegmenter  # noqa: E402
 from tracker.vision.settings import DEFAULT_SETTINGS  # noqa: E402
 
@@ -107,6 +113,9 @@ def main() -> None:
     )
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    start = time.perf_counter()
+    kernels.warm_up()
+    warm_up_ms = 1e3 * (time.perf_counter() - start)
     catheter = default_catheter()
     rig = default_render_rig()
     renderer = Renderer(catheter, rig, np.eye(3), BASE_W, seed=args.seed)
@@ -141,6 +150,8 @@ def main() -> None:
     print(f"python {platform.python_version()}, numpy {np.__version__}, opencv {cv2.__version__},"
           f" cv2 threads {cv2.getNumThreads()}, {platform.machine()}, load average"
           f" {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs, {args.load} busy processes")
+    print(f"compiled kernels ready in {warm_up_ms:.0f} ms before the first frame (numba"
+          f" {numba.__version__}; loaded from its cache, or compiled on a first run)")
     print(f"{args.frames} pairs per set-up ({len(pairs)} distinct, a smooth motion) of 640x480"
           " at the default rendering rig (f = 2500 px at 400 mm); wall clock / thread CPU time")
     wall, cpu = percentiles_ms([t[0] for t in single]), percentiles_ms([t[1] for t in single])

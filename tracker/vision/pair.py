@@ -22,6 +22,7 @@ import numpy as np
 from models.catheter import Catheter
 from models.imaging import PinholeView, Rig
 from tracker.types import Frame
+from tracker.vision import kernels
 from tracker.vision.background import CameraSegmenter
 from tracker.vision.segmentation import Segmenter, ViewSegmentation, frame_points
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
@@ -103,20 +104,6 @@ def _cap(n: int, angle_rad: float) -> Array:
 _FINE = _cap(100, _CAP_RAD)  # about 3 degrees apart
 
 
-def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
-    """Cross product of two 3-vectors of Python floats (numpy costs far more for one)."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _around(t: Array, cap: Array) -> Array:
-    """The cap's directions (3, n) turned so that +z goes to the unit vector t (3,)."""
-    t = tuple(t.tolist())
-    u = _cross(t, (1.0, 0.0, 0.0) if abs(t[0]) < 0.9 else (0.0, 1.0, 0.0))
-    norm = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-    u = (u[0] / norm, u[1] / norm, u[2] / norm)
-    return np.array([u, _cross(t, u), t]).T @ cap
-
-
 def _tip_from_band(
     cameras: Sequence[PinholeView],
     views: Sequence[ViewSegmentation],
@@ -154,23 +141,12 @@ def _tip_from_band(
     for k, camera in enumerate(cameras):
         x_cam = camera.R_cam_w @ centre_w + camera.t_cam_w
         linear[3 * n + k] = (x_cam / math.sqrt(x_cam @ x_cam)) @ camera.R_cam_w  # the ray
-    extent = np.array([[seg.tip_extent_px] for seg in views])
-    cap_px = np.array([[0.25 * math.pi * seg.tube_radius_px] for seg in views])
-
-    def cost(T: Array) -> Array:
-        q = linear @ T
-        px, py, along, sin_a = q[:n], q[n : 2 * n], q[2 * n : 3 * n], q[3 * n :]
-        # |p|^2 - along^2 is p's offset across the direction, squared. The end disc adds to
-        # the extent along the measured direction whatever that is: seen end-on the band
-        # is a disc and its measured direction means little.
-        r_along = extent - along - cap_px * np.abs(sin_a)
-        return (px * px + py * py - along * along + r_along * r_along).sum(axis=0)
-
-    best = _COARSE[:, int(np.argmin(cost(_COARSE)))]
-    fine = _around(best, _FINE)
-    costs = cost(fine)
-    k = int(np.argmin(costs))
-    return centre_w + half_band_mm * fine[:, k], float(costs[k])
+    extent = np.array([seg.tip_extent_px for seg in views])
+    cap_px = np.array([0.25 * math.pi * seg.tube_radius_px for seg in views])
+    # Seen end-on the band is a disc and its measured direction means little: the end disc
+    # adds to the extent along it whatever it is (kernels.tip_tangent).
+    tangent, misfit = kernels.tip_tangent(linear, extent, cap_px, _COARSE, _FINE)
+    return centre_w + half_band_mm * tangent, misfit
 
 
 def segment_pair(
@@ -324,7 +300,10 @@ class PairSegmenter:
     One :class:`tracker.vision.background.CameraSegmenter` per view of the rig (its
     background model follows slow changes of the scene and re-registers a camera that moved;
     its region of interest follows the catheter), then the cross-view steps of
-    :func:`combine_views`.
+    :func:`combine_views`. Making it loads the compiled kernels of the segmentation (or
+    compiles them, a few seconds the first time on a machine; through its
+    :class:`Segmenter`, :func:`tracker.vision.kernels.warm_up`), so the first frame does not
+    wait for them.
 
     Parameters
     ----------

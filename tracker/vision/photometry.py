@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tracker.vision import kernels
+
 Array = np.ndarray
 
 LEVELS = np.arange(256, dtype=np.float64)
@@ -221,60 +223,47 @@ def fit_photometry(
     """
     if samples is None:
         samples = background_samples(background, stride)
-    frame_u8 = image[samples.rows, samples.cols].ravel()
-    b_u8 = samples.levels
-    usable = _UNSATURATED.take(frame_u8)
-    usable &= samples.usable
-    n = int(np.count_nonzero(usable))
-    clipped = 1.0 - n / max(frame_u8.size, 1)
-    everywhere = n == frame_u8.size
+    height, width = image.shape
+    rows, cols = samples.rows.indices(height), samples.cols.indices(width)
+    # The sums over the grid are compiled kernels (the few thousand pixels in one loop each,
+    # where numpy took some twenty calls), the small solves stay here.
+    usable, frame, b_u8, counts, sums = kernels.tone_sums(
+        np.ascontiguousarray(image), rows, cols, samples.levels, samples.usable
+    )
+    n = frame.size
+    size = samples.levels.size
+    clipped = 1.0 - n / max(size, 1)
     if n < _MIN_SAMPLES:
-        sigma = robust_sigma(frame_u8.astype(np.float64) - b_u8)
+        frame_u8 = image[samples.rows, samples.cols].ravel()
+        sigma = robust_sigma(frame_u8.astype(np.float64) - samples.levels)
         return Photometry(LEVELS.astype(np.float32), np.zeros(2), sigma, 0.0, clipped, False)
-    if not everywhere:
-        frame_u8, b_u8 = frame_u8[usable], b_u8[usable]
-    frame = frame_u8.astype(np.float64)
-    counts = np.bincount(b_u8, minlength=256).astype(np.float64)
     mean_level = float(counts @ LEVELS) / n
     lut = LEVELS
     if normalise:
         # A curvature needs a spread of gray levels, an offset at least two of them.
         spread = math.sqrt(max(float(counts @ _LEVELS_SQUARED) / n - mean_level**2, 0.0))
         degree = 2 if spread >= 12.0 else (1 if spread >= 3.0 else 0)
-        sums = np.bincount(b_u8, weights=frame, minlength=256)
         lut = _tone_curve(counts, sums, degree)
-    residual = frame - lut.take(b_u8)
-    magnitude = np.abs(residual)
-    half = n // 2
-    gate = max(4.0 * 1.4826 * float(np.partition(magnitude, half)[half]), 2.0)
-    out = magnitude > gate
-    n_out = int(np.count_nonzero(out))
-    if normalise and n_out:
-        b_out = b_u8[out]
-        counts_in = counts - np.bincount(b_out, minlength=256)
-        sums_in = sums - np.bincount(b_out, weights=frame[out], minlength=256)
-        lut = _tone_curve(counts_in, sums_in, degree)
-        residual = frame - lut.take(b_u8)
-        out = np.abs(residual) > gate
-        n_out = int(np.count_nonzero(out))
-    residual[out] = 0.0
-    n_in = n - n_out
-    sigma = math.sqrt(float(residual @ residual) / n_in) if n_in > 10 else gate / 4.0
+    residual, out, gate, counts_out, sums_out = kernels.tone_residuals(frame, b_u8, lut, math.nan)
+    if normalise and out.any():
+        lut = _tone_curve(counts - counts_out, sums - sums_out, degree)
+        residual, out, _, _, _ = kernels.tone_residuals(frame, b_u8, lut, gate)
+    squares, g00, g01, g11, r0, r1 = kernels.noise_and_shift(
+        residual, out, samples.gradient, usable
+    )
+    n_in = n - int(np.count_nonzero(out))
+    sigma = math.sqrt(squares / n_in) if n_in > 10 else gate / 4.0
     # The slope of the tone curve at the background's mean gray level.
     level = min(max(round(mean_level), 1), 254)
     below, at, above = lut[level - 1 : level + 2].tolist()
     gain = 0.5 * (above - below)
     shift = [0.0, 0.0]
     if fit_shift and abs(gain) > 1e-6:
-        # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d on the inliers (their
-        # residual is zero elsewhere; the outliers' gradients are taken out of G).
-        g = samples.gradient if everywhere else samples.gradient.compress(usable, axis=1)
-        G = g @ g.T
-        if n_out:
-            g_out = g.compress(out, axis=1)
-            G -= g_out @ g_out.T
-        # Central differences are twice the gradient.
-        shift = [-2.0 * d / gain for d in _solve_small(G.tolist(), (g @ residual).tolist())]
+        # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d on the inliers: the
+        # least-squares fit of the residual to the background's gradients (G and g . r from
+        # the kernel, the outliers' left out). Central differences are twice the gradient.
+        G = [[g00, g01], [g01, g11]]
+        shift = [-2.0 * d / gain for d in _solve_small(G, (r0, r1))]
     # An offset of the frame does not scale with the light: contrasts are fractions of
     # f(b) - f(0). (A gamma has no black level; f(0) of its fitted curve is the intercept of
     # the curve's chord over the background's levels, which keeps contrasts to first order.)

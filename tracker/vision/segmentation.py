@@ -14,9 +14,9 @@ The paper's approach, per view (:class:`Segmenter`):
    (:mod:`tracker.vision.detection`), mask clean-up (closing, small blobs removed), and the
    catheter chosen as the blob nearest the registered base;
 3. the centreline: mask pixels ordered by their geodesic distance from the base along the
-   mask (a shortest-path sweep on the pixel graph, :mod:`tracker.vision.pixel_graph`; pieces
-   of a catheter split by an occluder are joined across gaps up to ``max_gap_px``), sampled
-   every ``bin_px``;
+   mask (a shortest-path sweep over the mask's 8-neighbour grid,
+   :mod:`tracker.vision.pixel_graph`; pieces of a catheter split by an occluder
+   are joined across gaps up to ``max_gap_px``), sampled every ``bin_px``;
 4. the radio-opaque bands (pixels blocking more than ``band_contrast`` of the light), ordered
    along the centreline and assigned to the base, to the catheter's markers and to the tip;
 5. the base and the tip as the two ends of the centreline, at sub-pixel precision by mass
@@ -38,6 +38,8 @@ is missing. Bad input is either a flagged result (no catheter, the tip out of th
 hidden marker, a view where the catheter overlaps itself) or one ``ValueError`` / ``OSError``
 (an image of the wrong size or type, an unreadable file), never a silent wrong point.
 
+The steps over the catheter's pixels are compiled kernels (:mod:`tracker.vision.kernels`).
+
 Points are in px (distorted pixels of the camera, as :class:`models.imaging.PinholeView`
 expects them); :func:`frame_points` maps them onto the rows ``[tip, marker_0, ...]`` of
 :class:`tracker.types.Frame`. Thresholds are
@@ -55,6 +57,7 @@ import cv2
 import numpy as np
 
 from models.catheter import Catheter
+from tracker.vision import kernels, pixel_graph
 from tracker.vision.detection import (
     coarse_region,
     detection_backgrounds,
@@ -63,7 +66,6 @@ from tracker.vision.detection import (
     search_box,
 )
 from tracker.vision.photometry import BackgroundSamples, Photometry, fit_photometry
-from tracker.vision.pixel_graph import PixelGraph
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 
 Array = np.ndarray
@@ -188,23 +190,21 @@ def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
 class _Band(NamedTuple):
     """One radio-opaque band: its contrast-weighted centroid c (2,) and covariance (2, 2), px,
     image; its distance from the base along the catheter (contrast-weighted mean, least and
-    greatest), px; ``member`` selects its pixels among the columns of ``pixels_xy`` (the
-    image coordinates (2, m) of every band pixel)."""
+    greatest), px; ``label``: its pixels are those the labels of :func:`kernels.bands`
+    give this number."""
 
     c: Array
     cov: Array
     d: float
     d_min: float
     d_max: float
-    pixels_xy: Array
-    member: Array
+    label: int
 
 
 # Read-only arrays of NaN: copied for a result's missing points (a copy costs less than
-# np.full); _NO_END is what _end returns when there is no end, shared by every result.
+# np.full).
 _NAN2, _NAN22 = np.full(2, np.nan), np.full((2, 2), np.nan)
-_NO_END = (_NAN2, _NAN22, _NAN2) + (float("nan"),) * 3
-for _array in _NO_END[:2]:
+for _array in (_NAN2, _NAN22):
     _array.flags.writeable = False
 _TIP_WITHHELD = SegmentationFlag.OVERLAP | SegmentationFlag.TIP_AT_BORDER
 
@@ -234,7 +234,9 @@ class Segmenter:
         the tip point). The base and the tip carry bands too.
     settings : SegmentationSettings
 
-    Not for several threads at once (it reuses its pixel graph from image to image).
+    Keeps nothing from image to image: one segmenter may serve several threads at once. Its
+    compiled kernels are loaded (or compiled, the first time on a machine) when it is made,
+    not on the first image (:func:`tracker.vision.kernels.warm_up`).
     """
 
     def __init__(self, catheter: Catheter, settings: SegmentationSettings = DEFAULT_SETTINGS):
@@ -259,7 +261,7 @@ class Segmenter:
         # The markers' points and covariances with none found, copied for every result.
         n = self.n_markers
         self._no_markers = np.full((n, 2), np.nan), np.full((n, 2, 2), np.nan)
-        self._graph = PixelGraph()  # rebuilt for every image
+        kernels.warm_up()
 
     # ---------------------------------------------------------------- public
     def segment(
@@ -414,33 +416,33 @@ class Segmenter:
         if pixels is None:
             return self.empty_result(flags | SegmentationFlag.NO_CATHETER, photometry)
         ys, xs, keep = pixels
-        # The background as the frame would show it, and the light that is: the contrast is
-        # the fraction of that light the catheter blocks.
-        flat = ys * width
-        flat += xs
-        flat += y0 * width + x0
-        lit = photometry.lut.take(background.take(flat)).astype(np.float64)
-        bg = lit - photometry.dark_gray
-        np.maximum(bg, 1.0, out=bg)
-        w = lit - image.take(flat)
-        np.maximum(w, 0.0, out=w)
-        w /= bg
-        var_w = sigma / bg
-        var_w *= var_w
-        xy = np.empty((2, xs.size))
-        np.add(xs, x0, out=xy[0])
-        np.add(ys, y0, out=xy[1])
-        # ---- pixel graph (8-neighbours) and the geodesic sweep from the base
-        graph = self._graph
-        graph.build(ys, xs, m.shape, xy)
+        # The contrast: the fraction of the light the catheter blocks (the background as the
+        # frame would show it, above the black level). The kernels take C-ordered arrays and
+        # ints and floats only: anything else would compile another version on the spot.
+        w, var_w, xy = kernels.contrast(
+            np.ascontiguousarray(image), np.ascontiguousarray(background), photometry.lut,
+            float(photometry.dark_gray), float(sigma), ys, xs, int(x0), int(y0),
+        )
+        # ---- geodesic distances from the base along the mask (8-neighbours)
+        index = pixel_graph.pixel_index(ys, xs, *m.shape)
+        max_gap = float(s.max_gap_px)
+        no_bridges = pixel_graph.NO_BRIDGES
+
+        def sweep(seed, bridges, max_gap_px=max_gap):
+            """Distances from the seed, the bridges after it and whether it added one."""
+            dist, *after = pixel_graph.geodesic_sweep(
+                index, ys, xs, xy, seed, max_gap_px, *bridges
+            )
+            return dist, after, after[1].size > bridges[1].size
+
         if base_px is not None:
-            dx, dy = xy[0] - float(base_px[0]), xy[1] - float(base_px[1])
-            dist, joined = graph.sweep(int((dx * dx + dy * dy).argmin()), s.max_gap_px)
+            seed = pixel_graph.nearest(xy, float(base_px[0]), float(base_px[1]))
+            dist, _, joined = sweep(seed, no_bridges)
         else:
             # Double sweep: the farthest pixel from anywhere is an end; the thicker end is the base.
-            d0, joined = graph.sweep(0, s.max_gap_px)
+            d0, bridges, joined = sweep(0, no_bridges)
             end_a = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
-            dist, j2 = graph.sweep(end_a, s.max_gap_px)
+            dist, bridges, j2 = sweep(end_a, bridges)
             joined = joined or j2
             reach = np.isfinite(dist)
             D = dist[reach].max()
@@ -449,7 +451,7 @@ class Segmenter:
             area_b = np.count_nonzero(reach & (dist >= D - span))
             if area_b > area_a:
                 end_b = int(np.argmax(np.where(reach, dist, -1)))
-                dist, _ = graph.sweep(end_b, 0.0)
+                dist, _, _ = sweep(end_b, bridges, 0.0)
         if joined:
             flags |= SegmentationFlag.FRAGMENTED
         D = float(dist.max())
@@ -459,6 +461,7 @@ class Segmenter:
                 xs[reach], ys[reach], xy.compress(reach, axis=1), w[reach], var_w[reach],
                 dist[reach],
             )
+            index = pixel_graph.pixel_index(ys, xs, *m.shape)
             D = float(dist.max())
 
         def thickness_of() -> Array:
@@ -466,36 +469,32 @@ class Segmenter:
             return radius[ys, xs]
 
         # ---- centreline samples: x, y and distance from the base
-        bins = (dist / s.bin_px).astype(np.intp)
-        count = np.bincount(bins, weights=w)
-        wxy = xy * w
-        line = np.array([np.bincount(bins, weights=wxy[0]), np.bincount(bins, weights=wxy[1]),
-                         np.bincount(bins, weights=w * dist)])
-        if not count.min() > 0:
-            ok = count > 0
-            count, line = count[ok], line.compress(ok, axis=1)
-        line /= count
+        bins, line = kernels.centreline(dist, xy, w, float(s.bin_px))
         centreline = line[:2].T.copy()
         # ---- bands along the catheter, and checks that the view is not self-overlapping
-        bands = self._bands(xs, ys, xy, w, var_w, dist, roi, m.shape)
-        overlap = self._overlapping(bins, D, thickness_of, bands)
+        bands, label, band_arrays = self._bands(index, ys, xs, w, var_w, dist, roi)
+        overlap = self._overlapping(bins, D, thickness_of, bands, band_arrays[2])
         tol = max(3.0, 2.0 * s.bin_px)
         base_band = tip_band = None
         if bands and bands[0].d_min <= tol:
             base_band = bands.pop(0)
         if self.has_tip_band and bands and bands[-1].d_max >= D - tol:
             tip_band = bands.pop(-1)
-        # ---- ends
-        (base, base_cov, _, _, _, base_mass), tip_end = self._ends(
-            xy, w, var_w, dist, line, base_band, tip_band, D
+        # ---- ends: the end band's centroid (or the centreline) plus the mass beyond it
+        ends = kernels.ends(
+            xy, w, var_w, dist, line, label, *band_arrays,
+            -1 if base_band is None else base_band.label,
+            -1 if tip_band is None else tip_band.label,
+            D, float(s.bin_px), float(s.end_slab_px), float(s.tip_direction_sigma_rad),
         )
-        tip, tip_cov, tip_direction, tip_extent, tube_radius, tip_mass = tip_end
+        base, base_cov, base_mass = ends[0, :2], ends[0, 2:6].reshape(2, 2), float(ends[0, 10])
+        tip, tip_cov, tip_direction = ends[1, :2], ends[1, 2:6].reshape(2, 2), ends[1, 6:8]
+        tip_extent, tube_radius, tip_mass = ends[1, 8:].tolist()
         # Both end bands block the same fraction of light, so the ratio of their contrast
         # per unit length is the ratio of the tube widths there, whatever the blur: the
         # distal tube is thinner. A far end as wide as the base is the catheter folded back
         # onto itself in this view (its bending plane seen edge-on), with another band there.
-        far = xy.compress(dist >= D - tol, axis=1)
-        (lo_x, lo_y), (hi_x, hi_y) = far.min(axis=1).tolist(), far.max(axis=1).tolist()
+        lo_x, lo_y, hi_x, hi_y = kernels.extent_beyond(xy, dist, float(D - tol))
         at_border = (
             lo_x < s.border_px
             or lo_y < s.border_px
@@ -572,7 +571,7 @@ class Segmenter:
             photometry=photometry,
         )
 
-    def _overlapping(self, bins: Array, D: float, thickness_of, bands: list[_Band]) -> bool:
+    def _overlapping(self, bins, D, thickness_of, bands: list[_Band], along: Array) -> bool:
         """Whether the catheter touches, crosses or folds onto itself in this view.
 
         Two signs. A stretch of the centreline where the mask has many more pixels per
@@ -584,23 +583,18 @@ class Segmenter:
 
         ``bins`` are the pixels' centreline samples, ``D`` the largest distance from the
         base; ``thickness_of()`` returns each pixel's inscribed radius; it is only called
-        when the counts are suspicious.
+        when the counts are suspicious. ``bands`` and ``along`` as :meth:`_bands` gives them.
         """
         s = self.settings
         n_bins = int(D / s.bin_px) + 1  # bins.max() + 1
-        count = np.bincount(bins, minlength=n_bins).astype(float)
-        # A band seen end-on is a disc wider than the tube: leave its samples and their
-        # neighbours out.
-        for b in bands:
-            count[max(int(b.d_min / s.bin_px) - 1, 0) : int(b.d_max / s.bin_px) + 2] = 0.0
-        count[:2] = 0.0
-        count[-2:] = 0.0
-        ok = count > 0
-        if np.count_nonzero(ok) < 3:
+        # Samples of a band (a band seen end-on is a disc wider than the tube) and of the
+        # ends count 0 (kernels.sample_counts).
+        count, typical_n = kernels.sample_counts(bins, n_bins, along, float(s.bin_px))
+        if not typical_n > 0:  # fewer than 3 samples to judge by
             return False
-        typical_n = _median(count[ok])
-        wide = ok & (count > 1.1 * s.overlap_ratio * typical_n)
+        wide = count > 1.1 * s.overlap_ratio * typical_n  # (typical_n > 0: only counted ones)
         if wide.any():
+            ok = count > 0
             thickness = np.zeros(n_bins)
             np.maximum.at(thickness, bins, thickness_of())
             typical_r = _median(thickness[ok])
@@ -609,168 +603,21 @@ class Segmenter:
         longest = 1.6 * typical_n / s.bin_px + 2.0 * s.bin_px
         return any(b.d_max - b.d_min > longest for b in bands)
 
-    def _bands(self, xs, ys, xy, w, var_w, dist, roi, shape) -> list[_Band]:
-        """Connected groups of band pixels (8-neighbours), ordered along the catheter.
-
-        Connected in the image, not along the geodesic distance: where the catheter hooks
-        back, two bands can lie at the same distance from the base. ``xs``, ``ys``: the
-        pixels in the region ``roi`` of the given shape.
-        """
+    def _bands(self, index, ys, xs, w, var_w, dist, roi) -> tuple[list[_Band], Array, tuple]:
+        """The radio-opaque bands (:func:`kernels.bands`: connected groups of band pixels,
+        8-neighbours), ordered along the catheter; each pixel's band number (-1: none); and
+        the bands as arrays (centres, covariances and distances from the base: mean, least,
+        greatest). ``index``: :func:`pixel_graph.pixel_index` of the pixels ``ys``, ``xs``
+        in the region ``roi``."""
         s = self.settings
-        idx = (w >= s.band_contrast).nonzero()[0]
-        if idx.size == 0:
-            return []
-        bx, by = xs[idx], ys[idx]
-        flat = by * shape[1]
-        flat += bx
-        band_mask = np.zeros(shape, np.uint8)
-        band_mask.put(flat, 1)
-        n, labels = cv2.connectedComponents(band_mask, connectivity=8)
-        # member[k]: which band pixels carry the label k + 1 (every label has some).
-        member = labels.take(flat) == np.arange(1, n)[:, None]
-        size = member.sum(axis=1).tolist()
-        # Per band, by sums over its pixels (products with the membership matrix): the
-        # contrast-weighted centroid and its covariance sum(var (p - c)(p - c)^T) / W^2 (the
-        # contrast's noise through the centroid), in the region's frame, and the distances.
-        d = dist[idx]
-        terms = np.array([np.ones(idx.size), bx, by, bx * bx, bx * by, by * by, d])
-        by_contrast = ((member * (w[idx] - s.band_contrast)) @ terms.T).tolist()
-        by_variance = ((member * var_w[idx]) @ terms[:6].T).tolist()
-        d_min = np.where(member, d, np.inf).min(axis=1).tolist()
-        d_max = np.where(member, d, -np.inf).max(axis=1).tolist()
-        kept, centres, covs = [], [], []
-        for k in range(n - 1):
-            if size[k] < s.min_band_area_px:
-                continue
-            W, Wx, Wy, _, _, _, Wd = by_contrast[k]
-            V, Vx, Vy, Vxx, Vxy, Vyy = by_variance[k]
-            safe = W if W > 0 else 1.0
-            cx, cy, d_mean = Wx / safe, Wy / safe, Wd / safe
-            safe = W * W if W > 0 else 1.0
-            cov_xy = (Vxy - cx * Vy - cy * Vx + cx * cy * V) / safe
-            centres.append((cx + roi[0], cy + roi[1]))
-            covs.append(((Vxx - 2.0 * cx * Vx + cx * cx * V) / safe, cov_xy,
-                         cov_xy, (Vyy - 2.0 * cy * Vy + cy * cy * V) / safe))
-            kept.append((d_mean, d_min[k], d_max[k], member[k]))
-        if not kept:
-            return []
-        centres = np.array(centres)
-        covs = np.array(covs).reshape(-1, 2, 2)
-        pixels_xy = xy.take(idx, axis=1)
-        bands = [_Band(c, cov, d_mean, d_lo, d_hi, pixels_xy, mine)
-                 for c, cov, (d_mean, d_lo, d_hi, mine) in zip(centres, covs, kept, strict=True)]
-        bands.sort(key=lambda b: b.d)
-        return bands
-
-    def _ends(self, xy, w, var_w, dist, line, base_band, tip_band, D):
-        """The base and the tip end of the centreline (:meth:`_end`).
-
-        The cut at an end is the end band's centroid, or without a band the centreline two
-        bins from the end; the direction there is the centreline's tangent from a
-        second-order one-sided difference of samples one and two band-lengths back (samples
-        right at an end are skewed: the end's far corner is geodesically farthest).
-        ``line`` (3, m) is the centreline's x, y and distance from the base.
-        """
-        if line.shape[1] < 4:
-            return _NO_END, _NO_END
-        step = 2.0 * self.settings.bin_px
-        at = []  # per end: the cut's distance from the base (if no band) and two samples back
-        cuts = []
-        for band, d_cut, sign in ((base_band, step, 1.0), (tip_band, D - step, -1.0)):
-            if band is not None:
-                d_cut = band.d
-            else:
-                at.append(d_cut)
-            cuts.append(d_cut)
-            at += [d_cut + sign * step, d_cut + sign * (2.0 * step)]
-        px = np.interp(at, line[2], line[0]).tolist()
-        py = np.interp(at, line[2], line[1]).tolist()
-        ends = []
-        for band, d_cut, at_tip in ((base_band, cuts[0], False), (tip_band, cuts[1], True)):
-            if band is not None:
-                cut = band.c
-            else:
-                cut = np.array([px.pop(0), py.pop(0)])
-            samples = (px.pop(0), py.pop(0)), (px.pop(0), py.pop(0))
-            ends.append(self._end(xy, w, var_w, dist, band, d_cut, cut, samples, at_tip))
-        return ends
-
-    def _end(self, xy, w, var_w, dist, band, d_cut, cut, samples, at_tip):
-        """Sub-pixel end of the centreline (tip or base) and its covariance.
-
-        The end lies past the cut ``cut`` (at ``d_cut`` from the base) by mass conservation:
-        the pixels past it carry ``M = e m`` of contrast, with m the mass per unit length
-        measured on a slab behind the cut, so ``e = M / m`` (pixels straddling the cut count
-        with the fraction of their footprint on each side). ``samples`` are the centreline
-        one and two band-lengths back from the cut (:meth:`_ends`).
-
-        Returns the end (2,), its covariance (2, 2), the unit direction toward the end, the
-        end's distance past the cut (px), the tube's image radius (px) and its contrast per
-        unit length (contrast x px: the band's contrast times the tube's image width).
-        """
-        s = self.settings
-        step = 2.0 * s.bin_px
-        cut_x, cut_y = cut.tolist()
-        (p0x, p0y), (p1x, p1y) = samples
-        dx = 3.0 * cut_x - 4.0 * p0x + p1x  # toward the end in both cases
-        dy = 3.0 * cut_y - 4.0 * p0y + p1y
-        norm = math.hypot(dx, dy)
-        if norm < 1e-9:
-            return _NO_END
-        dx, dy = dx / norm, dy / norm
-        direction = np.array([dx, dy])
-        if band is not None:
-            behind_band = (direction @ band.pixels_xy.compress(band.member, axis=1)).min() - (
-                cut_x * dx + cut_y * dy
-            )
-            slab = min(max(-float(behind_band), 0.5), s.end_slab_px)
-        else:
-            slab = s.end_slab_px
-        reach = 3.0 * step + slab
-        side = (dist >= d_cut - slab - step) if at_tip else (dist <= d_cut + slab + step)
-        near = side.nonzero()[0]
-        rel = xy.take(near, axis=1)
-        rel[0] -= cut_x
-        rel[1] -= cut_y
-        inside = (np.add.reduce(rel * rel) <= reach**2).nonzero()[0]
-        near = near[inside]
-        t = direction @ rel.take(inside, axis=1)
-        w_near = w[near]
-        # Each pixel's fraction past the cut and in the slab [-slab, 0] behind it, its
-        # extent along the direction being |dx| + |dy|.
-        part = np.array([t, t + slab])
-        part /= abs(dx) + abs(dy)
-        part += 0.5
-        np.maximum(part, 0.0, out=part)
-        np.minimum(part, 1.0, out=part)
-        part[1] -= part[0]
-        mass, behind = (part @ w_near).tolist()
-        m_per_px = behind / slab
-        if not m_per_px > 0:
-            return _NO_END
-        e = mass / m_per_px
-        # The noise of e through its gradient a part[0] + b part[1] over the pixels.
-        a, b = 1.0 / m_per_px, -e / (m_per_px * slab)
-        (s00, s01), (_, s11) = ((part * var_w[near]) @ part.T).tolist()
-        var_e = a * a * s00 + 2.0 * a * b * s01 + b * b * s11
-        # The end disc of a tube seen obliquely sticks out past the end point by up to
-        # pi/4 of the radius (m / 2 per unit contrast); half of that is the uncertainty of a
-        # single view (segment_pair removes it with both views).
-        k = int(0.9 * (w_near.size - 1))
-        w_near.partition(k)
-        contrast = float(w_near[k])  # the plateau, robust to noise
-        radius_px = 0.5 * m_per_px / max(contrast, 1e-6)
-        var_e = var_e + (math.pi / 8.0 * radius_px) ** 2
-        # Across: the end moves sideways with the direction's error.
-        var_across = (e * s.tip_direction_sigma_rad) ** 2
-        (c00, c01), (c10, c11) = band.cov.tolist() if band is not None else ((0.0, 0.0),) * 2
-        dxx, dxy, dyy = dx * dx, dx * dy, dy * dy
-        cov = np.array([
-            [c00 + var_e * dxx + var_across * (1.0 - dxx), c01 + var_e * dxy - var_across * dxy],
-            [c10 + var_e * dxy - var_across * dxy, c11 + var_e * dyy + var_across * (1.0 - dyy)],
-        ])
-        end = np.array([cut_x + e * dx, cut_y + e * dy])
-        return end, cov, direction, e, radius_px, m_per_px
+        label, centres, covs, along = kernels.bands(
+            index, ys, xs, w, var_w, dist, float(s.band_contrast), int(s.min_band_area_px),
+            int(roi[0]), int(roi[1]),
+        )
+        bands = [_Band(c, cov, d, d_lo, d_hi, k)
+                 for k, (c, cov, (d, d_lo, d_hi)) in enumerate(
+                     zip(centres, covs, along.tolist(), strict=True))]
+        return bands, label, (centres, covs, along)
 
     def _assign(self, bands, base_band, tip_band, D):
         """Interior bands -> interior markers: in order when the count matches, else by position."""
