@@ -93,16 +93,21 @@ def _batch_shape(q: Array, **shapes: tuple[int, ...]) -> tuple[int, ...]:
     return batch
 
 
-def _joint_basis_rows(basis: Basis, q_mm: float) -> tuple[list[float], list[float]]:
-    """eta(q) and d eta / dq for one joint value as Python floats (single-configuration path)."""
+def _joint_basis_rows(
+    basis: Basis, q_mm: float, derivatives: bool = True
+) -> tuple[list[float], list[float] | None]:
+    """eta(q) and d eta / dq (None without ``derivatives``) for one joint value as Python
+    floats (single-configuration path)."""
     if type(basis) is PowerBasis:
         # The same products in the same order as PowerBasis.values: both paths agree exactly.
         values = [1.0]
         for _ in range(basis.size - 1):
             values.append(values[-1] * q_mm)
+        if not derivatives:
+            return values, None
         return values, [0.0] + [k * values[k - 1] for k in range(1, basis.size)]
     x = np.array(q_mm)
-    return basis.values(x).tolist(), basis.derivatives(x).tolist()
+    return basis.values(x).tolist(), basis.derivatives(x).tolist() if derivatives else None
 
 
 def _block_diag(a: Array, b: Array) -> Array:
@@ -374,10 +379,12 @@ class Catheter:
         )
         return out
 
-    def _shape_vectors_single(
-        self, plan: _Plan, q: Array, joints: list[float], joint_rates: list[float] | None
-    ) -> ShapeVectors:
-        """:meth:`shape_vectors` for one configuration with a fixed, small number of numpy calls.
+    def _single(
+        self, plan: _Plan, joints: list[float], joint_rates: list[float] | None
+    ) -> tuple[list[tuple[float, float, float]], Array | None]:
+        """The plan's points c (in its order) as float triples and the tip velocity u (None
+        without ``joint_rates``), for one configuration, with a fixed, small number of numpy
+        calls.
 
         The tracker calls it once per frame, where the dozens of numpy calls of the batched
         path on arrays of a few elements cost far more than the arithmetic. The integrals
@@ -385,8 +392,9 @@ class Catheter:
         assembled from Python floats.
         """
         _, q_p, q_d = joints
-        eta_p, deta_p = _joint_basis_rows(self.proximal.eta, q_p)
-        eta_d, deta_d = _joint_basis_rows(self.distal.eta, q_d)
+        rates = joint_rates is not None
+        eta_p, deta_p = _joint_basis_rows(self.proximal.eta, q_p, rates)
+        eta_d, deta_d = _joint_basis_rows(self.distal.eta, q_d, rates)
         if joint_rates is None:
             e = np.exp(1j * (np.array(eta_p + eta_d) @ plan.G_single))
         else:
@@ -402,13 +410,12 @@ class Catheter:
             integrals = [integrals]
         p = integrals[0]  # x + i z of p_1 and p_2 at every limit; last: exp(i theta_1(L1))
         c1, s1 = p[-1].real, p[-1].imag
-        cd2, sd2 = math.cos(self.delta_2_rad), math.sin(self.delta_2_rad)
+        cd2, sd2 = self._delta_2_cos_sin
         points = []
         for j1, j2 in plan.point_columns:
             x1, z1, x2, z2 = p[j1].real, p[j1].imag, p[j2].real, p[j2].imag
             # Paper eq. DKfull at delta_1 = 0, as in _shape.
             points.append((x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2))
-        c = np.array(points)
         u = None
         if joint_rates is not None:
             dp = integrals[1]  # d/dq_p on segment 1's columns, d/dq_d on segment 2's
@@ -428,7 +435,11 @@ class Catheter:
                     dc_p[2] * p_dot + dc_d[2] * d_dot,
                 ]
             )
-        return ShapeVectors(q_r_rad=q[0], c_tip_mm=c[-1], c_markers_mm=c[:-1], u_tip_mm_s=u)
+        return points, u
+
+    @cached_property
+    def _delta_2_cos_sin(self) -> tuple[float, float]:
+        return math.cos(self.delta_2_rad), math.sin(self.delta_2_rad)
 
     # ------------------------------------------------------------------ public API
     def shape_vectors(self, q: Array, q_dot: Array | None = None) -> ShapeVectors:
@@ -454,7 +465,9 @@ class Catheter:
         if q.shape == (3,) and (q_dot is None or q_dot.shape == (3,)):
             joints = _joint_floats(q, "q")
             rates = None if q_dot is None else _joint_floats(q_dot, "q_dot")
-            return self._shape_vectors_single(plan, q, joints, rates)
+            points, u = self._single(plan, joints, rates)
+            c = np.array(points)
+            return ShapeVectors(q_r_rad=q[0], c_tip_mm=c[-1], c_markers_mm=c[:-1], u_tip_mm_s=u)
         q = check_joints(q)
         if q_dot is not None:
             q_dot = check_joints(q_dot, "q_dot")
@@ -473,6 +486,20 @@ class Catheter:
         return ShapeVectors(
             q_r_rad=q[..., 0], c_tip_mm=c[..., -1, :], c_markers_mm=c[..., :-1, :], u_tip_mm_s=u
         )
+
+    def points(self, q: Array) -> Array:
+        """The delta_L-independent vectors c of the tip, then of every marker, mm.
+
+        The same numbers as :meth:`shape_vectors` (``c_tip_mm`` first, then
+        ``c_markers_mm``) in one array of shape (..., 1 + n_markers, 3), with fewer calls for
+        one configuration (the filters' case, every frame).
+        """
+        q = np.asarray(q, dtype=float)
+        if q.shape == (3,):
+            points = self._single(self._marker_plan, _joint_floats(q, "q"), None)[0]
+            return np.array(points[-1:] + points[:-1])
+        shape = self.shape_vectors(q)
+        return np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
 
     def tip(self, q: Array, delta_L: Array | float = 0.0) -> Array:
         """Tip position o_4_b, mm, shape (..., 3) with q's batch shape broadcast with delta_L's."""

@@ -171,7 +171,7 @@ def velocity_from_positions(
     """
     dt = np.asarray(dt_s, dtype=float)
     bad = ~(np.isfinite(dt) & (dt > 0))
-    if np.any(bad):
+    if bad.any():
         raise ValueError(f"frame interval must be positive and finite, got {dt[bad].flat[0]} s")
     cov_now = np.asarray(cov_now, dtype=float)
     tip_now_b, tip_before_b = np.asarray(tip_now_b, float), np.asarray(tip_before_b, float)

@@ -68,26 +68,36 @@ def _symmetric_in_range(cov: Array, low: float, high: float) -> bool:
     except (TypeError, ValueError):
         return False
     if c.shape == (3, 3):
-        (a, b, c_), (d, e, f), (g, h, i) = c.tolist()
-        if not math.isfinite(a + b + c_ + d + e + f + g + h + i):  # a NaN or an infinity
-            return False
-        tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
-        if abs(b - d) > tol or abs(c_ - g) > tol or abs(f - h) > tol or max(a, e, i) > high:
-            return False
-        a, e, i = a - low, e - low, i - low
-        minor = a * e - b * b
-        return a > 0.0 and minor > 0.0 and a * (e * i - f * f) - b * (b * i - f * c_) + c_ * (
-            b * f - e * c_
-        ) > 0.0
+        return _symmetric_in_range_3(c.tolist(), low, high)
     if c.shape == (2, 2):
-        (a, b), (d, e) = c.tolist()
-        if not math.isfinite(a + b + d + e):
-            return False
-        tol = 1e-9 * max(abs(a), abs(e), 1e-300)
-        if abs(b - d) > tol or max(a, e) > high:
-            return False
-        return a - low > 0.0 and (a - low) * (e - low) - b * b > 0.0
+        return _symmetric_in_range_2(c.tolist(), low, high)
     return False
+
+
+def _symmetric_in_range_3(rows: list, low: float, high: float) -> bool:
+    """:func:`_symmetric_in_range` of a 3x3 matrix given as nested Python floats."""
+    (a, b, c, d, e, f, g, h, i) = rows[0] + rows[1] + rows[2]
+    if not math.isfinite(a + b + c + d + e + f + g + h + i):  # a NaN or an infinity
+        return False
+    tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
+    if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol or max(a, e, i) > high:
+        return False
+    a, e, i = a - low, e - low, i - low
+    minor = a * e - b * b
+    return a > 0.0 and minor > 0.0 and a * (e * i - f * f) - b * (b * i - f * c) + c * (
+        b * f - e * c
+    ) > 0.0
+
+
+def _symmetric_in_range_2(rows: list, low: float, high: float) -> bool:
+    """:func:`_symmetric_in_range` of a 2x2 matrix given as nested Python floats."""
+    (a, b), (d, e) = rows
+    if not math.isfinite(a + b + d + e):
+        return False
+    tol = 1e-9 * max(abs(a), abs(e), 1e-300)
+    if abs(b - d) > tol or max(a, e) > high:
+        return False
+    return a - low > 0.0 and (a - low) * (e - low) - b * b > 0.0
 
 
 def _positive_definite(a: Array) -> bool:
@@ -107,8 +117,9 @@ def _points(points: Array | None, shape: tuple[int, ...], limit: float) -> list[
     points = np.asarray(points, dtype=float)
     if points.shape != shape:
         return None
+    rows = points.tolist()
     present = []
-    for row in points.reshape(-1, shape[-1]).tolist():
+    for row in rows if points.ndim == 2 else (rows,):
         if math.isfinite(sum(row)):
             if max(map(abs, row)) > limit:
                 return None
@@ -122,7 +133,10 @@ def _points(points: Array | None, shape: tuple[int, ...], limit: float) -> list[
 
 def _within(values, limits) -> bool:
     """Finite values, each within its limit."""
-    return all(math.isfinite(x) and abs(x) <= lim for x, lim in zip(values, limits, strict=True))
+    for x, limit in zip(values, limits, strict=True):
+        if not (math.isfinite(x) and abs(x) <= limit):
+            return False
+    return True
 
 
 def observation_problem(observation: Observation, n_markers: int) -> str | None:
@@ -150,21 +164,24 @@ def observation_problem(observation: Observation, n_markers: int) -> str | None:
         if present is None:
             return f"markers not {n_markers} finite points within the catheter's reach"
         if any(present):
-            present = np.array(present)
             cov = np.asarray(o.markers_cov_b if o.markers_cov_b is not None else np.nan, float)
             if cov.shape == (n_markers, 3, 3):
-                blocks = cov[present]
+                ok = all(
+                    _symmetric_in_range_3(block, MIN_VARIANCE_MM2, MAX_VARIANCE_MM2)
+                    for block, found in zip(cov.tolist(), present, strict=True)
+                    if found
+                )
             elif cov.shape == (3 * n_markers, 3 * n_markers):
                 rows = np.repeat(present, 3)
-                blocks = cov[np.ix_(rows, rows)][None]
+                joint = cov[np.ix_(rows, rows)]
+                if joint.shape[-1] == 3:  # one marker: its block
+                    ok = _symmetric_in_range_3(joint.tolist(), MIN_VARIANCE_MM2, MAX_VARIANCE_MM2)
+                else:  # the joint covariance of several markers
+                    ok = np.all(np.diag(joint) <= MAX_VARIANCE_MM2) and _positive_definite(
+                        joint - MIN_VARIANCE_MM2 * np.eye(joint.shape[-1])
+                    )
             else:
                 return f"marker covariance of shape {cov.shape}"
-            if blocks.shape[-1] != 3:  # the joint covariance of several markers
-                ok = np.all(np.diag(blocks[0]) <= MAX_VARIANCE_MM2) and _positive_definite(
-                    blocks[0] - MIN_VARIANCE_MM2 * np.eye(blocks.shape[-1])
-                )
-            else:
-                ok = all(_symmetric_in_range(b, MIN_VARIANCE_MM2, MAX_VARIANCE_MM2) for b in blocks)
             if not ok:
                 return "marker covariance not positive definite or out of range"
     if o.velocity_b_mm_s is not None:
@@ -179,7 +196,7 @@ def observation_problem(observation: Observation, n_markers: int) -> str | None:
         ):
             return "velocity or its covariance unusable"
         cross = o.velocity_tip_cov_b
-        if cross is not None and not all(map(math.isfinite, np.ravel(cross).tolist())):
+        if cross is not None and not all(map(math.isfinite, np.asarray(cross).ravel().tolist())):
             return "velocity-tip cross-covariance not finite"
     for view in o.views:
         uv = np.asarray(view.uv, dtype=float)
@@ -191,7 +208,8 @@ def observation_problem(observation: Observation, n_markers: int) -> str | None:
             or not np.all(np.isfinite(uv))
             or np.any(np.abs(uv) > MAX_IMAGE_COORDINATE)
             or not all(
-                _symmetric_in_range(c, MIN_VARIANCE_MM2, MAX_POINT_SIGMA**2) for c in cov
+                _symmetric_in_range_2(c, MIN_VARIANCE_MM2, MAX_POINT_SIGMA**2)
+                for c in cov.tolist()
             )
         ):
             return "single-view points or covariances unusable"

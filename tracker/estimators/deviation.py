@@ -66,57 +66,73 @@ class ShapeExpansion:
 
     def __init__(self, catheter: Catheter) -> None:
         self.catheter = catheter
-        self._nodes: dict[tuple[int, int], tuple[Array, Array, Array]] = {}
+        self._nodes: dict[tuple[int, int], tuple[Array, Array]] = {}
 
-    def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
+    def _node(self, key: tuple[int, int]) -> tuple[Array, Array]:
+        """c and ``[J K]`` (P, 3, 5) at the grid node ``key``."""
         found = self._nodes.get(key)
         if found is None:
             if len(self._nodes) >= self.MAX_NODES:
                 self._nodes.clear()
             q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
-            found = self._nodes[key] = _expansion(self.catheter, q)
+            c, J, K = _expansion(self.catheter, q)
+            found = self._nodes[key] = (c, np.concatenate([J, K], axis=-1))
         return found
+
+    def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
+        """c, J and K at the grid node ``key`` (its indices in steps of ``GRID_MM``)."""
+        c, JK = self._node(key)
+        return c, JK[..., :2], JK[..., 2:]
 
     def points(self, q: Array) -> Array:
         """Model vectors of the tip and the markers at one q (3,): (P, 3), mm."""
-        shape = self.catheter.shape_vectors(q)
-        markers = shape.c_markers_mm
-        out = np.empty((markers.shape[0] + 1, 3))
-        out[0] = shape.c_tip_mm
-        out[1:] = markers
-        return out
+        return self.catheter.points(q)
 
     def __call__(self, q: Array) -> tuple[Array, Array, Array]:
         """c (B, P, 3), J (B, P, 3, 2) and K (B, P, 3, 3) at joint values q (B, 3)."""
+        c, JK = self.expanded(q)
+        return c, JK[..., :2], JK[..., 2:]
+
+    def expanded(self, q: Array) -> tuple[Array, Array]:
+        """c (B, P, 3) and ``[J K]`` (B, P, 3, 5) at joint values q (B, 3).
+
+        J is carried from the node to q by the expansion itself, ``J + K dquad/ddq``
+        (:func:`deviation_jacobian`), here as one product ``[J K] T`` with
+        ``T = [[I, 0], [dquad/ddq, I]]``.
+        """
         q = np.asarray(q, dtype=float)
         if q.shape[0] == 1:
             # One configuration in Python floats (round() rounds half to even, as np.rint).
             q_p, q_d = float(q[0, 1]), float(q[0, 2])
             key = (round(q_p / self.GRID_MM), round(q_d / self.GRID_MM))
-            _, J, K = self.node(key)
-            dq = np.array([q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM])
-            c = self.points(q[0])[None]
-            return c, deviation_jacobian(J, K, dq)[None], K[None]
+            JK = self._node(key)[1]
+            p, d = q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM
+            T = np.array(
+                [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2 * p, 0.0, 1.0, 0.0, 0.0,
+                 d, p, 0.0, 1.0, 0.0, 0.0, 2 * d, 0.0, 0.0, 1.0]
+            ).reshape(5, 5)  # fmt: skip
+            return self.points(q[0])[None], (JK @ T)[None]
         keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
         delta = q[:, 1:] - keys * self.GRID_MM
         distinct, index = np.unique(keys, axis=0, return_inverse=True)
-        nodes = [self.node((int(a), int(b))) for a, b in distinct]
-        J, K = (np.array([n[i] for n in nodes])[index.ravel()] for i in (1, 2))
+        JK = np.array([self._node((int(a), int(b)))[1] for a, b in distinct])[index.ravel()]
+        p, d = delta[:, 0], delta[:, 1]
+        T = np.zeros((q.shape[0], 5, 5))
+        T[:] = np.eye(5)
+        T[:, 2, 0], T[:, 3, 0], T[:, 3, 1], T[:, 4, 1] = 2 * p, d, p, 2 * d
         rows, where = np.unique(q, axis=0, return_inverse=True)
         c = np.array([self.points(row) for row in rows])[where.ravel()]
-        return c, deviation_jacobian(J, K, delta[:, None]), K
+        return c, JK @ T[:, None]
+
+
+# The factors of the quadratic terms of expansion_basis.
+_FIRST, _SECOND = np.array([0, 0, 1]), np.array([0, 1, 1])
 
 
 def expansion_basis(dq: Array) -> Array:
     """``[dq_p, dq_d, dq_p^2, dq_p dq_d, dq_d^2]`` of deviations (..., 2): (..., 5), the
     basis of ``[J K]``."""
-    out = np.empty(dq.shape[:-1] + (5,))
-    out[..., :2] = dq
-    p, d = dq[..., 0], dq[..., 1]
-    out[..., 2] = p * p
-    out[..., 3] = p * d
-    out[..., 4] = d * d
-    return out
+    return np.concatenate((dq, dq.take(_FIRST, -1) * dq.take(_SECOND, -1)), -1)
 
 
 def quadratic_terms(dq: Array) -> Array:

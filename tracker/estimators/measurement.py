@@ -59,12 +59,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
 from tracker.estimators.deviation import expansion_basis
 
 Array = np.ndarray
+_EYE3 = np.eye(3)
+_HORIZONTAL = np.array([1.0, 1.0, 0.0])
+# rotation_invariant as a linear map of the nine entries (row-major) of a 3x3 matrix: the
+# halves are exact, so its products give the same numbers as the entry-wise formula.
+_ROTATION_AVERAGE = np.zeros((9, 9))
+_ROTATION_AVERAGE[[0, 4, 0, 4], [0, 0, 4, 4]] = 0.5  # (A_xx + A_yy) / 2 on both
+_ROTATION_AVERAGE[[3, 1, 1, 3], [3, 3, 1, 1]] = [0.5, -0.5, 0.5, -0.5]  # the skew part
+_ROTATION_AVERAGE[8, 8] = 1.0
 
 # Angles at which a frame's cost is evaluated before Newton's method polishes the minimum.
 _FIT_ANGLES = np.linspace(-np.pi, np.pi, 64, endpoint=False)
@@ -78,6 +87,12 @@ _TWO_PI = 2.0 * math.pi
 def wrap(angle: Array) -> Array:
     """Angles wrapped to [-pi, pi)."""
     return (angle + math.pi) % _TWO_PI - math.pi
+
+
+def _xy(vectors: Array) -> Array:
+    """The (x, y) components of vectors (..., 3) as complex numbers ``x + i y`` (a view):
+    a turn about z is then one complex product."""
+    return vectors[..., :2].view(complex)[..., 0]
 
 
 def is_every_trial(b: Array | slice, n: int) -> bool:
@@ -160,8 +175,8 @@ class FrameGroups:
     def radius_mm(self) -> Array:
         """Horizontal radius of the present positions' model vectors, mm (B,)."""
         P = self.n_positions
-        r2 = np.sum(self.c[:, :P, :2] ** 2, -1)
-        return np.sqrt(np.sum(self.present[:, :P] * r2, 1))
+        c = self.c[:, :P]
+        return np.sqrt(np.einsum("bp,bpi,bpi,i->b", self.present[:, :P], c, c, _HORIZONTAL))
 
     def is_tip_group(self, g: int) -> bool:
         """Group 0 is the tip."""
@@ -174,13 +189,9 @@ class FrameGroups:
     def measured(self, b: Array, about: Array) -> Array:
         """The measured vectors in the model frame at angle ``about`` (r,):
         ``Rz(q_r + about)^T y``, (r, G, 3)."""
-        angle = self.q[b, 0] + about
-        c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-        y = self.y[b]
-        out = np.empty_like(y)
-        out[..., 0] = c * y[..., 0] + s * y[..., 1]
-        out[..., 1] = c * y[..., 1] - s * y[..., 0]
-        out[..., 2] = y[..., 2]
+        out = self.y[b].copy()
+        xy = _xy(out)
+        np.multiply(xy, np.exp(-1j * (self.q[b, 0] + about))[:, None], out=xy)
         return out
 
     def predict(
@@ -201,27 +212,24 @@ class FrameGroups:
         whole = is_every_trial(b, self.y.shape[0])
         c = self.c if whole else self.c[b]
         r, S = sigmas.shape[:2]
+        full = (r, S) + c.shape[1:]
         if deviation is not None:
             basis = expansion_basis(sigmas[..., deviation : deviation + 2])
             JK = (self.JK if whole else self.JK[b]).reshape(r, -1, 5)
-            deviated = basis @ np.swapaxes(JK, -1, -2)
-            shape = c[:, None] + deviated.reshape((r, S) + c.shape[1:])
+            shape = (basis @ JK.mT).reshape(full) + c[:, None]
         else:
-            shape = np.broadcast_to(c[:, None], (r, S) + c.shape[1:])
+            shape = np.repeat(c[:, None], S, axis=1)
         if rate is not None and self.has_velocity_group:
-            shape = shape.copy()
             shape[..., -1, 0] -= sigmas[..., rate] * c[:, None, 0, 1]
             shape[..., -1, 1] += sigmas[..., rate] * c[:, None, 0, 0]
         if about is None:
             angle = self.q[b, 0][:, None] + sigmas[..., 0]
         else:
             angle = sigmas[..., 0] - about[:, None]
-        co, si = np.cos(angle)[..., None], np.sin(angle)[..., None]
-        out = np.empty((r, S) + c.shape[1:])
-        out[..., 0] = co * shape[..., 0] - si * shape[..., 1]
-        out[..., 1] = si * shape[..., 0] + co * shape[..., 1]
-        out[..., 2] = shape[..., 2]
-        return out
+        # Turned in place: shape is this call's own array.
+        xy = _xy(shape)
+        np.multiply(xy, np.exp(1j * angle)[..., None], out=xy)
+        return shape
 
     def without_velocity(self, mask: Array) -> FrameGroups:
         """The same groups with the velocity group removed where ``mask`` (B,) is True."""
@@ -295,6 +303,20 @@ class ViewGroups:
         return self
 
 
+def check_measurement_covariance(noise: Array, present: Array) -> None:
+    """ValueError naming the problem if a present group's noise is not usable (its
+    rotation-invariant part, which the filters use, must be positive definite)."""
+    d = noise.shape[-1]
+    diagonal = noise.reshape(noise.shape[:-2] + (d * d,))[..., :: d + 1]
+    # (not positive) < present: a present group with a variance that is not positive.
+    if ((diagonal > 0) < present[..., None]).any():
+        raise ValueError(
+            "measurement covariance of the frame is not positive definite (or not finite): "
+            "check tip_cov_b, markers_cov_b, velocity_cov_b, velocity_tip_cov_b or the view "
+            "covariances"
+        )
+
+
 def velocity_offered(settings, tip_fused: Array) -> Array:
     """Which of B filters fuse a velocity in their next step (``settings``: UKFSettings).
 
@@ -318,19 +340,13 @@ def offered_velocity(frame, settings, tip_fused: Array):
 
 
 def rotation_invariant(A: Array) -> Array:
-    """The part of 3x3 matrices (..., 3, 3) invariant under rotations about z.
+    """The part of finite 3x3 matrices (..., 3, 3) invariant under rotations about z.
 
     ``diag((A_xx + A_yy) / 2, (A_xx + A_yy) / 2, A_zz)`` plus the antisymmetric horizontal
-    part (zero for a covariance).
+    part (zero for a covariance). One product with a fixed 9 x 9 map (a non-finite entry
+    anywhere makes the whole result NaN).
     """
-    out = np.zeros_like(A)
-    horizontal = 0.5 * (A[..., 0, 0] + A[..., 1, 1])
-    skew = 0.5 * (A[..., 1, 0] - A[..., 0, 1])
-    out[..., 0, 0] = out[..., 1, 1] = horizontal
-    out[..., 1, 0] = skew
-    out[..., 0, 1] = -skew
-    out[..., 2, 2] = A[..., 2, 2]
-    return out
+    return (A.reshape(A.shape[:-2] + (9,)) @ _ROTATION_AVERAGE).reshape(A.shape)
 
 
 def _finite_rows(a: Array, axes: tuple[int, ...]) -> Array:
@@ -366,38 +382,65 @@ def assemble_groups(
         Tip velocity (mm/s), its covariance and its cross-covariance with the tip; a
         velocity group exists when ``velocity`` is given (present where finite).
     """
+    return assemble_expanded(
+        q, q_dot, c, np.concatenate([J, K], axis=-1), tip, tip_cov, markers, markers_cov,
+        velocity, velocity_cov, cross,
+    )  # fmt: skip
+
+
+def assemble_expanded(
+    q: Array,
+    q_dot: Array | None,
+    c: Array,
+    JK: Array,
+    tip: Array | None,
+    tip_cov: Array | None,
+    markers: Array | None,
+    markers_cov: Array | None,
+    velocity: Array | None = None,
+    velocity_cov: Array | None = None,
+    cross: Array | None = None,
+) -> FrameGroups:
+    """:func:`assemble_groups` with the expansion as ``JK = [J K]`` (B, P, 3, 5), as
+    :meth:`~tracker.estimators.deviation.ShapeExpansion.expanded` gives it (held, not copied,
+    without a velocity group)."""
     B, P = c.shape[:2]
     has_v = velocity is not None
     G = P + has_v
-    eye = np.eye(3)
-    y = np.zeros((B, G, 3))
-    R = np.empty((B, G, 3, 3))
-    R[:] = eye
+    # Each group's vector and covariance side by side: one finiteness test for both.
+    data = np.empty((B, G, 12))
+    y, R = data[..., :3], data[..., 3:].reshape(B, G, 3, 3)
     has_tip = tip is not None and tip_cov is not None
     has_markers = markers is not None and markers_cov is not None and P > 1
+    if has_v or not (has_tip and has_markers):
+        # Placeholders for the groups not written below.
+        y[:] = 0.0
+        R[:] = _EYE3
     if has_tip:
         y[:, 0] = tip
         R[:, 0] = tip_cov
     if has_markers:
         y[:, 1:P] = markers
         R[:, 1:P] = markers_cov
-    present = np.isfinite(y).all(-1) & np.isfinite(R).all(axis=(-2, -1))
-    present[:, 0] &= has_tip
-    present[:, 1:P] &= has_markers
+    present = np.isfinite(data).all(-1)
+    if not has_tip:
+        present[:, 0] = False
+    if not has_markers:
+        present[:, 1:P] = False
     if not present[:, :P].all():
         absent = ~present
         absent[:, P:] = False
         y[absent] = 0.0
-        R[absent] = eye
-    JK = np.zeros((B, G, 3, 5))
-    JK[:, :P, :, :2] = J
-    JK[:, :P, :, 2:] = K
+        R[absent] = _EYE3
     C = c
     K_bar = np.zeros((B, 3, 3))
     u_norm = np.zeros(B)
     if has_v:
         C = np.zeros((B, G, 3))
         C[:, :P] = c
+        JK_all = np.zeros((B, G, 3, 5))
+        JK_all[:, :P] = JK
+        JK = JK_all
         rates = np.full((B, 3), np.nan) if q_dot is None else q_dot
         ok = (
             _finite_rows(velocity, (-1,))
@@ -411,10 +454,10 @@ def assemble_groups(
             u = np.zeros((B, 3))
             u[:, 0] = -c_tip[:, 1] * rates[:, 0]
             u[:, 1] = c_tip[:, 0] * rates[:, 0]
-            u = np.nan_to_num(u + (J[:, 0] @ rates[:, 1:, None])[..., 0])
+            u = np.nan_to_num(u + (JK[:, 0, :, :2] @ rates[:, 1:, None])[..., 0])
             v_bar, cov_bar, gain = decorrelated_velocity(
                 np.where(ok[:, None], velocity, 0.0),
-                np.where(ok[:, None, None], velocity_cov, eye),
+                np.where(ok[:, None, None], velocity_cov, _EYE3),
                 None if cross is None else np.where(ok[:, None, None], cross, np.nan),
                 y[:, 0], R[:, 0], present[:, 0],
             )  # fmt: skip
@@ -450,11 +493,11 @@ def decorrelated_velocity(
         return velocity, velocity_cov, K
     C = np.where(usable[:, None, None], cross, 0.0)
     # K = C S^-1, i.e. K^T = S^-1 C^T (S symmetric): one solve per trial.
-    S = np.where(usable[:, None, None], tip_cov, np.eye(3))
-    K = np.swapaxes(np.linalg.solve(S, np.swapaxes(C, -1, -2)), -1, -2)
-    v_bar = velocity - np.einsum("bij,bj->bi", K, tip)
-    cov = velocity_cov - K @ np.swapaxes(C, -1, -2)
-    return v_bar, 0.5 * (cov + np.swapaxes(cov, -1, -2)), K
+    S = np.where(usable[:, None, None], tip_cov, _EYE3)
+    K = np.linalg.solve(S, C.mT).mT
+    v_bar = velocity - (K @ tip[..., None])[..., 0]
+    cov = velocity_cov - K @ C.mT
+    return v_bar, 0.5 * (cov + cov.mT), K
 
 
 def model_error_covariance(
@@ -479,14 +522,15 @@ def model_error_covariance(
         The frame interval, s.
     """
     J = groups.J
-    M = (white_mm * white_mm) * (J @ np.swapaxes(J, -1, -2))
+    M = (white_mm * white_mm) * (J @ J.mT)
     if groups.has_velocity_group:
         c_tip = groups.c[:, 0]
         with np.errstate(divide="ignore", invalid="ignore"):
             rate_var = np.where(dt_s > 0, process_var_rad2 / dt_s**2, 0.0)
-        tangent = np.stack([-c_tip[:, 1], c_tip[:, 0], np.zeros_like(c_tip[:, 0])], -1)
+        tangent = np.zeros(c_tip.shape)
+        tangent[:, 0], tangent[:, 1] = -c_tip[:, 1], c_tip[:, 0]
         M[:, -1] += (
-            (velocity_relative_error * groups.u_norm_mm_s)[:, None, None] ** 2 * np.eye(3)
+            (velocity_relative_error * groups.u_norm_mm_s)[:, None, None] ** 2 * _EYE3
             + rate_var[:, None, None] * tangent[:, :, None] * tangent[:, None, :]
         )
     return M
@@ -621,6 +665,7 @@ def mixture_log_likelihood(
     return log_outlier - 0.5 * d2 / outlier_scale**2 + np.log1p(ratio * np.exp(-0.5 * shrink * d2))
 
 
+@lru_cache(maxsize=64)
 def outlier_threshold(dim: int, outlier_probability: float, outlier_scale: float) -> float:
     """The squared residual beyond which a group is more likely an outlier than not: where
     :func:`inlier_probability` falls to one half (inf without outliers)."""
@@ -668,6 +713,8 @@ __all__ = [
     "group_coefficients",
     "inlier_probability",
     "is_every_trial",
+    "assemble_expanded",
+    "check_measurement_covariance",
     "assemble_groups",
     "jump_probability",
     "mixture_log_likelihood",

@@ -41,7 +41,7 @@ from tracker.estimators._linalg import (
     spd_inverse,
 )
 from tracker.estimators.deviation import ShapeExpansion
-from tracker.estimators.measurement import ViewGroups, assemble_groups
+from tracker.estimators.measurement import ViewGroups, assemble_expanded
 from tracker.estimators.ukf_core import FilterBank
 from tracker.estimators.ukf_settings import UKFSettings, gate_threshold
 from tracker.types import Estimate, Flag, Observation
@@ -102,28 +102,26 @@ def observation_groups(
         velocity_cov = _array(observation.velocity_cov_b, (3, 3))
     if velocity is None or velocity_cov is None:
         velocity = velocity_cov = None
-    cross = _array(observation.velocity_tip_cov_b, (3, 3))
-    if cross is not None and observation.velocity_tip_cov_b is not None:
-        if np.shape(observation.velocity_tip_cov_b) != (3, 3):
-            raise ValueError(
-                "velocity_tip_cov_b must have shape (3, 3), got shape "
-                f"{np.shape(observation.velocity_tip_cov_b)}"
-            )
+    cross = observation.velocity_tip_cov_b
+    if cross is not None:
+        cross = np.asarray(cross, dtype=float)
+        if cross.shape != (3, 3):
+            raise ValueError(f"velocity_tip_cov_b must have shape (3, 3), got shape {cross.shape}")
+        cross = cross[None]
     q_dot = None if observation.q_dot is None else _array(observation.q_dot, (3,))
     has_3d = tip is not None or markers is not None or velocity is not None
     if has_3d:
-        c, J, K = expansion(q[None])
-        groups = assemble_groups(
-            q[None], q_dot, c, J, K, tip, tip_cov, markers, markers_cov, velocity,
+        c, JK = expansion.expanded(q[None])
+        groups = assemble_expanded(
+            q[None], q_dot, c, JK, tip, tip_cov, markers, markers_cov, velocity,
             velocity_cov, cross,
         )  # fmt: skip
+        found = groups.present[0].tolist()
         P = groups.n_positions
-        found = groups.present[0, :P]
-        partial = bool(
-            (tip is not None and tip_cov is not None and not found[0])
-            or (markers is not None and not found[1:].all())
+        partial = (tip is not None and tip_cov is not None and not found[0]) or (
+            markers is not None and not all(found[1:P])
         )
-        if found.any() or (not observation.views and groups.present.any()):
+        if any(found[:P]) or (not observation.views and any(found)):
             return groups, partial
     if observation.views:
         views = _view_groups(catheter, observation, q)
@@ -182,7 +180,7 @@ def check_observation(observation: Observation, last_time_s: float) -> tuple[flo
     if math.isfinite(last_time_s) and t < last_time_s:
         raise ValueError(f"observations must arrive in time order: {t} s after {last_time_s} s")
     q = np.asarray(observation.q, dtype=float)
-    if q.shape != (3,) or not np.isfinite(q).all():
+    if q.shape != (3,) or not all(map(math.isfinite, q.tolist())):
         raise ValueError(f"observation.q must be three finite numbers, got {observation.q}")
     return t, q
 

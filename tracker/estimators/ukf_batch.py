@@ -8,7 +8,7 @@ hundreds of study points x hundreds of trials x tens of frames.
 It is the same filter, not an approximation of it: both step a
 :class:`~tracker.estimators.ukf_core.FilterBank`, where the rules (gate, restart, mismatch,
 repair) are written once, and both build each frame's measurement groups with
-:func:`~tracker.estimators.measurement.assemble_groups` from the same
+:func:`~tracker.estimators.measurement.assemble_expanded` from the same
 :class:`~tracker.estimators.deviation.ShapeExpansion`. Only the order of floating-point
 sums over the trial axis can differ (tests/tracker/test_ukf_batch.py requires 1e-9 rad and
 identical flags). Missing data are NaN (a tip, a marker, a velocity); single-view
@@ -23,7 +23,7 @@ import numpy as np
 
 from models.catheter import Catheter
 from tracker.estimators.deviation import ShapeExpansion
-from tracker.estimators.measurement import assemble_groups
+from tracker.estimators.measurement import assemble_expanded
 from tracker.estimators.ukf_core import FilterBank
 from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Flag, velocity_from_positions
@@ -219,10 +219,10 @@ def run_ukf_batch(
     }
     for k in range(frames):
         if q.ndim == 2 or k == 0 or not np.array_equal(q_all[:, k], q_all[:, k - 1]):
-            shape = expansion(q_all[:, k] if q.ndim == 3 else q_all[:1, k])
-            c, J, K = (np.broadcast_to(a, (n,) + a.shape[1:]) for a in shape)
-        groups = assemble_groups(
-            q_all[:, k], None if q_dot_all is None else q_dot_all[:, k], c, J, K, tip[:, k],
+            shape = expansion.expanded(q_all[:, k] if q.ndim == 3 else q_all[:1, k])
+            c, JK = (np.broadcast_to(a, (n,) + a.shape[1:]) for a in shape)
+        groups = assemble_expanded(
+            q_all[:, k], None if q_dot_all is None else q_dot_all[:, k], c, JK, tip[:, k],
             tip_cov[:, k],
             None if markers is None else markers[:, k],
             None if markers_cov is None else markers_cov[:, k],

@@ -11,12 +11,12 @@ sum: the held estimate and a restarted one), each a UKF. Per frame:
 1. **Predict** every hypothesis with the process model (linear, so its unscented transform
    is exact: ``F x``, ``F P F^T + Q``), delta_L wrapped, the std capped.
 2. **Gate**: per measured group (tip, marker, velocity) the posterior probability that it is
-   no gross error, from its residual against the hypothesis and the group's innovation
-   covariance (noise + model error + prior spread, from van der Merwe's sigma points with
-   the weights of filterpy's :class:`~filterpy.kalman.MerweScaledSigmaPoints`); groups below
-   one half are rejected, the others fused in one UKF update. The velocity has its own gate
-   and its own model error, and a finite-difference velocity is offered only after a step
-   that fused no tip.
+   no gross error, from its residual and its block of the innovation covariance (van der
+   Merwe's sigma points, filterpy's weights); groups below one half are rejected, the rest
+   fused in one update. Groups that pass alone but contradict each other (the joint NIS
+   beyond its gate) are left out one at a time, the least consistent first; a doubtful
+   group's update is mixed with the update without it (:mod:`.ukf_update`). The velocity
+   has its own gate and model error, offered only after a step that fused no tip.
 3. **Restart**: when the leading hypothesis rejects any group of a frame whose closed form is
    informative, unambiguous (not nearly straight relative to noise plus model error) and
    self-consistent, a hypothesis starts there with prior weight ``jump probability`` times
@@ -33,21 +33,20 @@ sum: the held estimate and a restarted one), each a UKF. Per frame:
    covariance that cannot be factorised leaves the hypothesis at its prediction.
 
 The reported estimate is the moment-matched Gaussian of the hypotheses (circular mean), so a
-filter torn between two hypotheses says so with a large std.
+filter torn between two hypotheses says so with a large std; hypotheses that come to agree
+are merged.
 
 filterpy's role: its sigma-point weights are used here, and its
 :class:`~filterpy.kalman.UnscentedKalmanFilter` is the step-by-step reference of the tests
-(with the heavy tail and the model error off, a predict and an update of a bank of one equal
-filterpy's). Its filter object is not used at run time: it keeps one filter in mutable
-attributes and updates with every measurement it is given, whereas these rules need the
-per-group innovation statistics before the update, several hypotheses per filter and a
-leading batch axis.
+(heavy tail and model error off: a predict and an update of a bank of one equal filterpy's).
+It is not used at run time: it keeps one filter in mutable attributes and fuses whatever it
+is given, whereas these rules need per-group statistics before the update, several
+hypotheses per filter and a batch axis.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
@@ -57,17 +56,21 @@ from tracker.estimators._linalg import (
     COVARIANCE_JITTER_FLOOR,
     CovarianceError,
     block_index,
+    block_mahalanobis,
     cholesky,
+    diagonal_blocks,
+    sigma_points,
     sigma_sqrt,
     spd_inverse,
-    spd_solve,
 )
 from tracker.estimators.deviation import deviation_decay, deviation_prior, quadratic_moments
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
+    check_measurement_covariance,
     fit_frame,
     group_coefficients,
+    inlier_probability,
     is_every_trial,
     jump_probability,
     model_error_covariance,
@@ -79,6 +82,17 @@ from tracker.estimators.measurement import (
     wrap,
 )
 from tracker.estimators.ukf_settings import UKFSettings, gate_threshold
+from tracker.estimators.ukf_update import (
+    StepResult,
+    UpdateResult,
+    doubt_threshold,
+    exclude_inconsistent,
+    fuse_inliers,
+    joint_gates,
+    merge_agreeing,
+    mixture,
+    posterior,
+)
 from tracker.types import Flag
 
 Array = np.ndarray
@@ -90,47 +104,6 @@ MAX_MISMATCH_SCALE = 1e4
 _LOG_2PI = math.log(2.0 * math.pi)
 
 _F = {name: flag.value for name, flag in Flag.__members__.items()}
-
-
-def check_measurement_covariance(noise: Array, present: Array) -> None:
-    """ValueError naming the problem if a present group's noise is not usable (its
-    rotation-invariant part, which the filters use, must be positive definite)."""
-    diagonal = np.diagonal(noise, axis1=-2, axis2=-1)
-    if not ((diagonal > 0).all(-1) | ~present).all():
-        raise ValueError(
-            "measurement covariance of the frame is not positive definite (or not finite): "
-            "check tip_cov_b, markers_cov_b, velocity_cov_b, velocity_tip_cov_b or the view "
-            "covariances"
-        )
-
-
-@dataclass
-class StepResult:
-    """What a bank step reports per trial (arrays of length B)."""
-
-    delta_L_rad: Array
-    std_rad: Array
-    flags: Array
-    nis: Array
-    nis_dof: Array
-    rejected: Array
-    radius_mm: Array
-    innovation: list
-
-
-@dataclass
-class _Update:
-    """What the update did, per updated hypothesis (rows: trial ``b``, slot ``h``)."""
-
-    b: Array
-    h: Array
-    status: Array
-    nis: Array
-    dof: Array
-    rejected: Array
-    inlier: Array  # (r, G)
-    fused_tip: Array
-    innovation: list | None
 
 
 class FilterBank:
@@ -158,7 +131,12 @@ class FilterBank:
         self.H = s.max_hypotheses
         self.max_variance = s.max_std_rad**2
         self.min_information = s.uninformative_std_rad**-2
-        self._eye3 = np.eye(3)
+        self.reacquire_variance = s.reacquire_std_rad**2
+        # The state components the deviation's decay a scales (f = undecayed + a decayed).
+        self._decayed = np.zeros(n)
+        if self.deviation is not None:
+            self._decayed[self.deviation : self.deviation + 2] = 1.0
+        self._undecayed = 1.0 - self._decayed
         self.reset(n_trials)
 
     # ------------------------------------------------------------------ state
@@ -178,8 +156,19 @@ class FilterBank:
         self.noise_scale = np.ones(B)
         self.tip_fused = np.zeros(B, dtype=bool)
         self.good_x, self.good_P = self.x.copy(), self.P.copy()
-        self._single = True  # every trial has at most one hypothesis (a fast path)
+        # Fast paths: every trial has at most one hypothesis (``_single``), and it is in slot
+        # 0 (``_first_only``: then slot 0 of every trial is each one's leading hypothesis).
+        # Either may be False when it is true (then the general path runs), never the reverse.
+        self._single = self._first_only = True
+        # The predict's Cholesky factors of slot 0 of every trial, reused by the update's
+        # sigma points in the same step (None: factorise there).
+        self._factor = None
         self._held_slot = np.zeros(B, dtype=np.intp)
+        # Every trial in order, and slot 0 of each: the hypotheses a bank of one marks.
+        self._every = np.arange(B)
+        self._slot_0 = np.zeros(B, dtype=np.intp)
+        for index in (self._every, self._slot_0):
+            index.setflags(write=False)
 
     def deviation_prior(self, q: Array) -> Array:
         """Prior variance of (dq_p, dq_d) at joint values q (B', 3), mm^2."""
@@ -218,6 +207,8 @@ class FilterBank:
 
     def leading(self) -> Array:
         """Index of each trial's heaviest hypothesis."""
+        if self._first_only:
+            return np.zeros(self.B, dtype=np.intp)
         if self._single:
             return np.argmax(self.active, axis=1)
         return np.argmax(np.where(self.active, self.log_weight, -np.inf), axis=1)
@@ -228,9 +219,13 @@ class FilterBank:
 
     def moments(self) -> tuple[Array, Array]:
         """Moment-matched mean (circular) and variance of delta_L per trial (NaN if none)."""
+        if self._first_only:
+            some = self.active[:, 0]
+            return (np.where(some, self.x[:, 0, 0], np.nan),
+                    np.where(some, self.P[:, 0, 0, 0], np.nan))  # fmt: skip
         if self._single:
             lead = self.leading()
-            b = np.arange(self.B)
+            b = self._every
             some = self.active[b, lead]
             return (np.where(some, self.x[b, lead, 0], np.nan),
                     np.where(some, self.P[b, lead, 0, 0], np.nan))  # fmt: skip
@@ -275,59 +270,52 @@ class FilterBank:
         if partial is None:
             flags = np.zeros(B, dtype=np.int64)
         else:
-            flags = np.where(partial, _F["PARTIAL"], 0).astype(np.int64, copy=False)
+            flags = partial * _F["PARTIAL"]
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
             nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
             innovation=[None] * B,
         )  # fmt: skip
+        # The deviation's prior at this frame's joint values (the predict and the mismatch).
+        prior = None if self.deviation is None else self.deviation_prior(q)
+        self._factor = None
         running = self.initialised.copy()
-        if running.any():
+        # Every trial running (the live filter's usual case): nothing to mask by ``running``.
+        all_running = bool(running.all())
+        if all_running or running.any():
             moved = np.abs(change[:, 1]) + np.abs(change[:, 2])
-            self._predict(running, dt, Q, moved, flags)
+            self._predict(running, all_running, dt, Q, moved, prior, flags)
         fused_tip = np.zeros(B, dtype=bool)
         if frame is None or not frame.present.any():
             flags |= _F["NO_MEASUREMENT"]
             flags |= np.where(running, _F["HELD"], _F["NOT_INITIALISED"])
         else:
             frame = offered_velocity(frame, s, self.tip_fused)
-            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip)
+            self._fuse(frame, running, all_running, Q, dt, turn, flags, out, fused_tip)
         self.tip_fused = fused_tip
         if self.deviation is not None:
             k = self.deviation
-            lead = self.x[np.arange(B), self.leading(), k : k + 2]
-            far = (lead * lead > 9.0 * self.deviation_prior(q)).any(1)
-            flags |= np.where(far & self.initialised, _F["MODEL_MISMATCH"], 0)
+            if self._first_only:
+                lead = self.x[:, 0, k : k + 2]
+            else:
+                lead = self.x[self._every, self.leading(), k : k + 2]
+            far = lead * lead > 9.0 * prior
+            flags |= (self.initialised & (far[:, 0] | far[:, 1])) * _F["MODEL_MISMATCH"]
         mean, var = self.moments()
         valid = self.initialised & np.isfinite(mean)
         out.delta_L_rad = np.where(valid, mean, np.nan)
-        out.std_rad = np.where(valid, np.sqrt(np.where(valid, var, 1.0)), np.nan)
+        out.std_rad = np.sqrt(np.where(valid, var, np.nan))
         out.rejected = self.rejected.copy()
         return out
 
     # ------------------------------------------------------------------ predict
-    def _sigma_points(self, x: Array, P: Array) -> tuple[Array, Array]:
-        """Wrapped sigma points (r, 2n + 1, n) and which covariances factorised."""
-        n = self.n
-        A = self.spread * P
-        if n == 1:
-            a = A[:, 0, 0]
-            ok = np.isfinite(a) & (a >= -COVARIANCE_JITTER_FLOOR)
-            U = np.sqrt(np.where(ok, np.maximum(a, COVARIANCE_JITTER_FLOOR), 1.0))[:, None, None]
-        else:
-            finite = np.isfinite(A).all(axis=(-2, -1))
-            L, ok = cholesky(A if finite.all() else np.where(finite[:, None, None], A, np.eye(n)))
-            ok &= finite
-            U = np.swapaxes(L, -1, -2)
-        sigmas = np.empty((x.shape[0], 2 * n + 1, n))
-        sigmas[:, 0] = x
-        sigmas[:, 1 : n + 1] = x[:, None] + U
-        sigmas[:, n + 1 :] = x[:, None] - U
-        sigmas[..., 0] = wrap(sigmas[..., 0])
-        return sigmas, ok
-
-    def _predict(self, running: Array, dt: Array, Q: Array, moved: Array, flags: Array) -> None:
-        """The process model of the active hypotheses of running trials.
+    def _predict(
+        self, running: Array, all_running: bool, dt: Array, Q: Array, moved: Array,
+        prior: Array | None, flags: Array,
+    ) -> None:  # fmt: skip
+        """The process model of the active hypotheses of running trials (``all_running``:
+        every trial runs; ``prior``: the deviation's prior variance at the frame's joint
+        values, (B, 2)).
 
         It is linear (a random walk of delta_L, its rate integrated, the deviation an
         Ornstein-Uhlenbeck process in the joint travel), so the unscented transform of its
@@ -335,41 +323,44 @@ class FilterBank:
         spread stays below pi by the std cap): that is what is computed.
         """
         s, n = self.settings, self.n
-        b, h, rows = self._marked(self.active & running[:, None])
+        b, h, rows = self._marked(self.active if all_running else self.active & running[:, None])
         if b.size == 0:
             return
         if rows is b:
             x, P = self.x[b, h], self.P[b, h]
         else:
             x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
+        r = b.size
         P[:, 0, 0] += Q[rows]
         if self.deviation is not None:
             k = self.deviation
             a = deviation_decay(
                 moved[rows], s.deviation_length_mm, dt[rows], s.deviation_rate_per_s
             )
-            scale = np.ones((b.size, n))
-            scale[:, k : k + 2] = a[:, None]
-            x = x * scale
-            P = P * scale[:, :, None] * scale[:, None, :]
-            fresh = (1 - a * a)[:, None] * self.deviation_prior(self.q[rows])
+            # F = diag(f) with f = (1, .., a, a): x f and P f f^T.
+            f = self._undecayed + a[:, None] * self._decayed
+            x *= f
+            P *= f[:, :, None] * f[:, None, :]
+            fresh = (1 - a * a)[:, None] * prior[rows]
             P[:, k, k] += fresh[:, 0]
             P[:, k + 1, k + 1] += fresh[:, 1]
         if self.rate is not None:
-            r, step = self.rate, dt[rows]
+            j, step = self.rate, dt[rows]
             qa = s.rate_process_noise_rad2_s3
-            x[:, 0] += step * x[:, r]
-            P[:, 0, :] += step[:, None] * P[:, r, :]
-            P[:, :, 0] += step[:, None] * P[:, :, r]
+            x[:, 0] += step * x[:, j]
+            P[:, 0, :] += step[:, None] * P[:, j, :]
+            P[:, :, 0] += step[:, None] * P[:, :, j]
             P[:, 0, 0] += qa * step**3 / 3.0
-            P[:, 0, r] += qa * step**2 / 2.0
-            P[:, r, 0] += qa * step**2 / 2.0
-            P[:, r, r] += qa * step
+            P[:, 0, j] += qa * step**2 / 2.0
+            P[:, j, 0] += qa * step**2 / 2.0
+            P[:, j, j] += qa * step
         x[:, 0] = wrap(x[:, 0])
-        ok = np.isfinite(x).all(-1) & np.isfinite(P).all(axis=(-2, -1)) & (P[:, 0, 0] > 0)
+        ok = np.isfinite(x).all(-1) & np.isfinite(P.reshape(r, -1)).all(-1) & (P[:, 0, 0] > 0)
+        factor = None
         if n > 1 and ok.all():
-            ok = cholesky(P)[1]
+            factor, ok = cholesky(P)
         if not ok.all():
+            factor = None
             bad = ~ok
             gx, gP = self._repaired(self.good_x[b[bad], h[bad]], self.good_P[b[bad], h[bad]])
             gP[:, 0, 0] += Q[b[bad]]
@@ -377,6 +368,7 @@ class FilterBank:
             flags[b[bad]] |= _F["COVARIANCE_REPAIRED"]
         over = P[:, 0, 0] > self.max_variance
         if over.any():
+            factor = None
             f = np.sqrt(self.max_variance / P[over, 0, 0])
             P[over, 0, :] *= f[:, None]
             P[over, :, 0] *= f[:, None]
@@ -384,11 +376,15 @@ class FilterBank:
             self.x[b, h], self.P[b, h] = x, P
         else:
             self.x[:, 0], self.P[:, 0] = x, P
+            self._factor = factor
 
     def _marked(self, mask: Array) -> tuple[Array, Array, Array | slice]:
         """The hypotheses marked in ``mask`` (B, H) as indices (b, h), and the trial rows to
         read per hypothesis: ``slice(None)`` when they are the first slot of every trial in
         order (a bank of one's usual case: views instead of gathers), else b."""
+        if self._first_only and mask[:, 0].all():
+            # mask lies within the active hypotheses, all in slot 0: it is slot 0 of all.
+            return self._every, self._slot_0, slice(None)
         b, h = np.nonzero(mask)
         every = is_every_trial(b, self.B) and not h.any()
         return b, h, slice(None) if every else b
@@ -404,14 +400,14 @@ class FilterBank:
         return x.copy(), diag[..., None] * np.eye(self.n)
 
     # ------------------------------------------------------------------ fuse
-    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:
+    def _fuse(self, frame, running, all_running, Q, dt, turn, flags, out, fused_tip) -> None:
         s = self.settings
         B = self.B
-        noise = frame.noise(slice(None))
-        check_measurement_covariance(noise, frame.present)
+        present = frame.present
+        check_measurement_covariance(frame.noise(slice(None)), present)
         three_d = isinstance(frame, FrameGroups)
         # Trials without a usable group in this frame only predict.
-        measured = frame.present.any(axis=1)
+        measured = present.any(axis=1)
         if not measured.all():
             flags |= np.where(measured, 0, _F["NO_MEASUREMENT"])
             flags |= np.where(measured, 0, np.where(running, _F["HELD"], _F["NOT_INITIALISED"]))
@@ -424,43 +420,56 @@ class FilterBank:
                 frame, s.joint_error_white_mm, s.velocity_relative_error, rate_var, dt
             )
         # Hypotheses too wide to update (the prior carries almost nothing).
-        wide = self.active & (self.P[..., 0, 0] > s.reacquire_std_rad**2) & running[:, None]
+        live = self.active if all_running else self.active & running[:, None]
+        wide = live & (self.P[..., 0, 0] > self.reacquire_variance)
         all_wide = np.zeros(B, dtype=bool)
-        if wide.any():
+        wide_any = bool(wide.any())
+        if wide_any:
             narrow = self.active & ~wide
             self.active &= ~(wide & narrow.any(axis=1)[:, None])
-            all_wide = running & self.active.any(axis=1) & ~narrow.any(axis=1)
-        all_wide &= measured
-        updating = self.active & ~wide & (running & measured)[:, None]
+            all_wide = running & self.active.any(axis=1) & ~narrow.any(axis=1) & measured
+            updating = self.active & ~wide & (running & measured)[:, None]
+        else:
+            updating = live & measured[:, None]
         spawn = np.zeros(B, dtype=bool)
-        if updating.any():
-            update = self._update(frame, updating, M, scale)
+        marked = self._marked(updating)
+        if marked[0].size:
+            update = self._update(frame, marked, M, scale)
             # The report follows each trial's leading hypothesis.
-            lead = self.leading()
-            mine = update.h == lead[update.b]
-            if is_every_trial(update.b, B) and mine.all():
-                # Row i of the update is trial i's leading hypothesis: no gathers.
+            every = False  # the update's rows are every trial's report, unmasked
+            if update.h is self._slot_0 and self._first_only:
+                # Row i of the update is slot 0 of trial i, its leading hypothesis.
                 row = slice(None)
-                touched = running & ~all_wide
+                touched = running & ~all_wide if wide_any else running
+                every = all_running and not wide_any
             else:
-                row = np.full(B, -1)
-                row[update.b[mine]] = np.flatnonzero(mine)
-                touched = running & ~all_wide & (row >= 0)
-                row = np.maximum(row, 0)
-            st = np.where(touched, update.status[row], 0)
+                mine = update.h == self.leading()[update.b]
+                if is_every_trial(update.b, B) and mine.all():
+                    row = slice(None)
+                    touched = running & ~all_wide
+                else:
+                    row = np.full(B, -1)
+                    row[update.b[mine]] = np.flatnonzero(mine)
+                    touched = running & ~all_wide & (row >= 0)
+                    row = np.maximum(row, 0)
+            # Masked by ``touched`` (unless it is every trial: then the masks are identities).
+            st = update.status if every else touched * update.status[row]
             flags |= st
-            out.nis = np.where(touched, update.nis[row], np.nan)
-            out.nis_dof = np.where(touched & np.isfinite(out.nis), update.dof[row], 0)
+            out.nis = update.nis if every else np.where(touched, update.nis[row], np.nan)
+            reported = np.isfinite(out.nis) if every else touched & np.isfinite(out.nis)
+            out.nis_dof = reported * update.dof[row]
             if B == 1 and touched[0]:
                 out.innovation[0] = update.innovation[0 if isinstance(row, slice) else row[0]]
-            self.rejected += np.where(touched, update.rejected[row], 0)
-            held = (st & _F["HELD"]) != 0
-            all_rejected = touched & held & ((st & _F["OUTLIER_REJECTED"]) != 0)
-            self.bad_run = np.where(touched & ~all_rejected, 0, self.bad_run)
-            fused_tip |= touched & update.fused_tip[row]
+            self.rejected += update.rejected if every else touched * update.rejected[row]
+            rejected = (st & _F["OUTLIER_REJECTED"]) != 0
+            held_rejected = _F["OUTLIER_REJECTED"] | _F["HELD"]
+            all_rejected = (st & held_rejected) == held_rejected
+            kept = ~all_rejected if every else touched & ~all_rejected
+            self.bad_run = np.where(kept, 0, self.bad_run)
+            fused_tip |= update.fused_tip if every else touched & update.fused_tip[row]
             # Data the leading hypothesis does not explain, in part or as a whole: weigh a
             # hypothesis started from the frame alone against it.
-            spawn = touched & ((st & _F["OUTLIER_REJECTED"]) != 0) & three_d
+            spawn = rejected & three_d
             if s.estimate_noise:
                 self._adapt_noise(touched, out.nis, out.nis_dof)
         if three_d:
@@ -582,16 +591,19 @@ class FilterBank:
         slot = np.argmin(lw, axis=1)
         take = log_w > lw[np.arange(b.size), slot]
         b, slot = b[take], slot[take]
-        self._single = False
+        self._single = self._first_only = False
         self.active[b, slot] = True
         self.log_weight[b, slot] = log_w[take]
         self._set(b, slot, fit.delta_L_rad[chosen][take], std[chosen][take], None)
 
     def _normalise(self) -> None:
-        counts = self.active.sum(axis=1)
-        self._single = bool((counts <= 1).all())
+        self._first_only = self.H == 1 or not self.active[:, 1:].any()
+        self._single = self._first_only or bool((self.active.sum(axis=1) <= 1).all())
         if self._single:
             self.log_weight = np.where(self.active, 0.0, -np.inf)
+            return
+        if self._merge_agreeing():
+            self._normalise()
             return
         s = self.settings
         total = self._log_total()
@@ -603,6 +615,14 @@ class FilterBank:
         if drop.any():
             self.active[drop] = False
             self._normalise()
+
+    def _merge_agreeing(self) -> bool:
+        """Merge hypotheses that have come to agree with the leading one
+        (:func:`~tracker.estimators.ukf_update.merge_agreeing`); whether any was merged."""
+        merged = merge_agreeing(self.x, self.P, self.log_weight, self.active, self.leading())
+        if merged.any():
+            self.good_x[merged], self.good_P[merged] = self.x[merged], self.P[merged]
+        return bool(merged.any())
 
     def _adapt_noise(self, trials: Array, nis: Array, dof: Array) -> None:
         s = self.settings
@@ -618,8 +638,8 @@ class FilterBank:
         self.noise_scale = np.where(ok, new, self.noise_scale)
 
     # ------------------------------------------------------------------ update
-    def _update(self, frame, updating: Array, M: Array | None, scale: Array) -> _Update:
-        """filterpy's UKF update of every hypothesis marked ``updating`` (B, H), with a gate
+    def _update(self, frame, marked: tuple, M: Array | None, scale: Array) -> UpdateResult:
+        """filterpy's UKF update of the ``marked`` hypotheses (:meth:`_marked`), with a gate
         per group.
 
         3-D data are compared in the model frame at each hypothesis' prior mean (the
@@ -631,83 +651,97 @@ class FilterBank:
         unit noise.
         """
         s = self.settings
-        B = self.B
-        b, h, rows = self._marked(updating)
+        b, h, rows = marked
         r = b.size
         G, d, n = frame.present.shape[1], frame.dim, self.n
         m = G * d
         if rows is b:
             x, P = self.x[b, h], self.P[b, h]
         else:
-            x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
-        sigmas, ok_sigma = self._sigma_points(x, P)
+            # Views of slot 0: read only until the write-back at the end.
+            x, P = self.x[:, 0], self.P[:, 0]
+        factor = None if rows is b else self._factor
+        sigmas, dx, ok_sigma = sigma_points(x, P, self.spread, factor)
         about = x[:, 0]
         hs = frame.predict(rows, sigmas, self.rate, self.deviation, about).reshape(r, -1, m)
         zp = self.Wm @ hs
         D = hs - zp[:, None]
-        rho = frame.measured(rows, about).reshape(r, m) - zp
+        rho = rho_all = frame.measured(rows, about).reshape(r, m) - zp
         present = frame.present[rows]
         noise = frame.noise(rows) * scale[rows, None, None, None]
         if M is not None:
             noise += M[rows]
         DW = D * self.Wc[:, None]
-        S = np.swapaxes(DW, 1, 2) @ D
-        blocks = block_index(G, d)
-        flat = S.reshape(r, m * m)
-        flat[:, blocks] += noise.reshape(r, -1)
-        # Per group: its block of S, its squared residual, the gate.
-        S_g = flat[:, blocks].reshape(r, G, d, d)
-        rho_g = rho.reshape(r, G, d)
-        d2 = (rho_g * np.linalg.solve(S_g, rho_g[..., None])[..., 0]).sum(-1)
+        S = DW.mT @ D
+        S.reshape(r, m * m)[:, block_index(G, d)] += noise.reshape(r, -1)
+        # Per group: its squared residual under its block of S, the gate.
+        d2 = block_mahalanobis(S, rho, G, d)
         threshold = outlier_threshold(d, s.outlier_probability, s.outlier_scale)
         inlier = present & (d2 <= threshold)
-        outlier = present & ~inlier
-        if not inlier.all():
-            # Fuse the inlying groups only: zero rows and columns, unit noise, for the rest.
-            keep = np.repeat(inlier, d, axis=1)
-            S = S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
-                :, :, None
-            ] * np.eye(m)
-            D = D * keep[:, None, :]
-            DW = DW * keep[:, None, :]
-            rho = rho * keep
-        dx = sigmas - x[:, None]
-        dx[..., 0] = wrap(dx[..., 0])
-        Pxz = np.swapaxes(dx, 1, 2) @ DW
-        rhs = np.empty((r, m, n + 1))
-        rhs[..., :n] = np.swapaxes(Pxz, -1, -2)
-        rhs[..., n] = rho
-        solved, logdet_S, ok_S = spd_solve(S, rhs)
-        nis = (rho * solved[..., n]).sum(-1)
-        x_post = x + (Pxz @ solved[..., n, None])[..., 0]
-        x_post[:, 0] = wrap(x_post[:, 0])
-        P_post = P - Pxz @ solved[..., :n]
-        P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
-        n_in = inlier.sum(-1)
+        Pxz = dx.mT @ DW
+        products, logdet_S, ok_S = fuse_inliers(S, rho, Pxz, inlier, d)
+        if math.isfinite(threshold) and G > 1:
+            # A group can fit its own block of S (prior spread included) and still contradict
+            # the others: the joint NIS then fails its chi-square gate although every group
+            # passed. Leave out, one at a time, the group least consistent with the rest.
+            n_in = inlier.sum(-1)
+            gates = joint_gates(s.gate_probability, d, G)
+            suspect = (n_in >= 2) & (products[:, n, n] > gates[n_in])
+            if suspect.any():
+                inlier = exclude_inconsistent(S, rho, inlier, suspect, d, threshold)
+                products, logdet_S, ok_S = fuse_inliers(S, rho, Pxz, inlier, d)
+        every_group = bool(inlier.all())
+        nis = products[:, n, n]
+        x_post, P_post = posterior(x, P, products, n)
+        # A group let in by its gate may still be a gross error (probability 1 - p): the
+        # posterior is then the mixture of the update with it and the update without it,
+        # matched by its moments, so that a doubtful group moves the estimate less and widens
+        # the spread by as much as it moved it.
+        doubt = inlier & (d2 > doubt_threshold(d, s.outlier_probability, s.outlier_scale))
+        if doubt.any():
+            p_in = inlier_probability(d2, d, s.outlier_probability, s.outlier_scale)
+            w = np.prod(np.where(doubt, p_in, 1.0), axis=1)
+            alternative = fuse_inliers(S, rho, Pxz, inlier & ~doubt, d)[0]
+            x_alt, P_alt = posterior(x, P, alternative, n)
+            x_post, P_post = mixture(w, x_post, P_post, x_alt, P_alt)
         p, k = s.outlier_probability, s.outlier_scale
         # The frame's likelihood under the hypothesis (weighs it against a restarted one).
-        log_lik = n_in * math.log1p(-p) - 0.5 * (nis + logdet_S + d * n_in * _LOG_2PI)
-        if p > 0 and outlier.any():
-            logdet_g = np.linalg.slogdet(S_g)[1]
+        per_group = math.log1p(-p) - 0.5 * d * _LOG_2PI
+        usable = ok_sigma & ok_S
+        if every_group:
+            n_in = G
+            outlier = None
+        else:
+            n_in = inlier.sum(-1)
+            outlier = present & ~inlier
+            usable &= n_in > 0
+        log_lik = n_in * per_group - 0.5 * (nis + logdet_S)
+        if p > 0 and not every_group and outlier.any():
+            logdet_g = np.linalg.slogdet(diagonal_blocks(S, G, d))[1]
             log_lik = log_lik + np.sum(
                 outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
                            - 0.5 * (logdet_g + d * _LOG_2PI)), -1
             )  # fmt: skip
-        usable = ok_sigma & ok_S & (n_in > 0)
         prior_var, post_var = P[:, 0, 0], P_post[:, 0, 0]
         post_ok = (post_var > 0) & np.isfinite(x_post[:, 0])
         # The frame's information about delta_L (how much it shrank the variance) must
         # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
-        uninformative = usable & post_ok & ~(
-            prior_var - post_var > self.min_information * prior_var * post_var
-        )
-        done = usable & post_ok & ~uninformative
-        status = np.where(outlier.any(-1), _F["OUTLIER_REJECTED"], 0)
-        if not done.all():
+        informative = prior_var - post_var > self.min_information * prior_var * post_var
+        settled = usable & post_ok
+        done = settled & informative
+        uninformative = settled & ~informative
+        all_done = bool(done.all())
+        if every_group:
+            status = np.zeros(r, dtype=np.int64)
+            rejected = np.zeros(r, dtype=np.int64)
+        else:
+            status = outlier.any(-1) * _F["OUTLIER_REJECTED"]
+            rejected = outlier.sum(-1)
+        if not all_done:
             status |= np.where(done | uninformative, 0, _F["HELD"])
             status |= np.where((n_in > 0) & ~(ok_S & post_ok), _F["COVARIANCE_REPAIRED"], 0)
             status |= np.where(uninformative, _F["UNINFORMATIVE"] | _F["HELD"], 0)
-        if rows is not b and done.all():
+        if rows is not b and all_done:
             self.x[:, 0] = self.good_x[:, 0] = x_post
             self.P[:, 0] = self.good_P[:, 0] = P_post
             self.mismatch_scale = 1.0 + MISMATCH_DECAY * (self.mismatch_scale - 1.0)
@@ -723,13 +757,15 @@ class FilterBank:
             self.log_weight[:, 0] += log_lik
         shown = usable & ~uninformative
         innovation = None
-        if B == 1:
+        if self.B == 1:
+            rho_g = rho_all.reshape(r, G, d)
             innovation = [
-                rho_g[i][inlier[i]].ravel() if shown[i] else None for i in range(r)
+                None if not shown[i] else rho_all[i] if every_group else rho_g[i][inlier[i]].ravel()
+                for i in range(r)
             ]
-        return _Update(
+        return UpdateResult(
             b=b, h=h, status=status, nis=np.where(shown, nis, np.nan),
-            dof=np.where(shown, d * n_in, 0), rejected=outlier.sum(-1), inlier=inlier,
+            dof=shown * (d * n_in), rejected=rejected, inlier=inlier,
             fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
         )  # fmt: skip
 
