@@ -191,6 +191,10 @@ def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max
         pairs.cancel_join_thread()  # the cameras stopped reading: do not wait for them
 
 
+FETCH_LEAD_S = 0.01
+"""How long before its exposure :class:`SimulatedCameras` takes a pair from its renderer, s."""
+
+
 class SimulatedCameras:
     """Simulated triggered cameras: a live source of :class:`ImageSet` at exposure times.
 
@@ -299,6 +303,13 @@ class SimulatedCameras:
         if self.start_s is None:
             raise RuntimeError("SimulatedCameras.start(start_s) was not called")
         for k, t in enumerate(self.times_s):
+            exposure_s = self.start_s + float(t)
+            # Take the pair from the renderer shortly before its exposure rather than right
+            # after the last pair was released: unpacking it holds the interpreter, and right
+            # after a release the loop is working on that pair.
+            early = exposure_s - FETCH_LEAD_S - time.monotonic()
+            if early > 0 and self._stop.wait(early):
+                return
             images = None
             while images is None:
                 if self._stop.is_set():
@@ -311,7 +322,6 @@ class SimulatedCameras:
                     continue
                 if index < 0:
                     raise RuntimeError(f"the simulated cameras' renderer failed: {images}")
-            exposure_s = self.start_s + float(t)
             wait = exposure_s - time.monotonic()
             if wait > 0:
                 if self._stop.wait(wait):
