@@ -353,41 +353,6 @@ def _finite_rows(a: Array, axes: tuple[int, ...]) -> Array:
     return np.isfinite(a).all(axis=axes)
 
 
-def assemble_groups(
-    q: Array,
-    q_dot: Array | None,
-    c: Array,
-    J: Array,
-    K: Array,
-    tip: Array | None,
-    tip_cov: Array | None,
-    markers: Array | None,
-    markers_cov: Array | None,
-    velocity: Array | None = None,
-    velocity_cov: Array | None = None,
-    cross: Array | None = None,
-) -> FrameGroups:
-    """The groups of one frame of B trials from reconstructed 3-D data.
-
-    Parameters
-    ----------
-    q, q_dot : arrays (B, 3)
-        Joint values and rates (``q_dot`` None or NaN: no velocity).
-    c, J, K : arrays (B, P, 3), (B, P, 3, 2), (B, P, 3, 3)
-        :class:`~tracker.estimators.deviation.ShapeExpansion` of every trial.
-    tip, tip_cov : arrays (B, 3), (B, 3, 3), or None
-    markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3), or None
-        NaN rows: markers not found.
-    velocity, velocity_cov, cross : arrays (B, 3), (B, 3, 3), (B, 3, 3), optional
-        Tip velocity (mm/s), its covariance and its cross-covariance with the tip; a
-        velocity group exists when ``velocity`` is given (present where finite).
-    """
-    return assemble_expanded(
-        q, q_dot, c, np.concatenate([J, K], axis=-1), tip, tip_cov, markers, markers_cov,
-        velocity, velocity_cov, cross,
-    )  # fmt: skip
-
-
 def assemble_expanded(
     q: Array,
     q_dot: Array | None,
@@ -401,9 +366,25 @@ def assemble_expanded(
     velocity_cov: Array | None = None,
     cross: Array | None = None,
 ) -> FrameGroups:
-    """:func:`assemble_groups` with the expansion as ``JK = [J K]`` (B, P, 3, 5), as
+    """The groups of one frame of B trials from reconstructed 3-D data, with the shape
+    expansion as ``JK = [J K]`` (B, P, 3, 5), as
     :meth:`~tracker.estimators.deviation.ShapeExpansion.expanded` gives it (held, not copied,
-    without a velocity group)."""
+    without a velocity group).
+
+    Parameters
+    ----------
+    q, q_dot : arrays (B, 3)
+        Joint values and rates (``q_dot`` None or NaN: no velocity).
+    c, JK : arrays (B, P, 3), (B, P, 3, 5)
+        :class:`~tracker.estimators.deviation.ShapeExpansion` of every trial: c, then J
+        (the deviation's slope) and K (its quadratic term) side by side.
+    tip, tip_cov : arrays (B, 3), (B, 3, 3), or None
+    markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3), or None
+        NaN rows: markers not found.
+    velocity, velocity_cov, cross : arrays (B, 3), (B, 3, 3), (B, 3, 3), optional
+        Tip velocity (mm/s), its covariance and its cross-covariance with the tip; a
+        velocity group exists when ``velocity`` is given (present where finite).
+    """
     B, P = c.shape[:2]
     has_v = velocity is not None
     G = P + has_v
@@ -715,7 +696,6 @@ __all__ = [
     "is_every_trial",
     "assemble_expanded",
     "check_measurement_covariance",
-    "assemble_groups",
     "jump_probability",
     "mixture_log_likelihood",
     "offered_velocity",

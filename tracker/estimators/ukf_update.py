@@ -57,6 +57,14 @@ MERGE_DISTANCE = 0.1
 MERGE_VARIANCE_RATIO = 1.2
 
 
+def masked(S: Array, keep: Array) -> Array:
+    """S (r, m, m) with the rows and columns not kept (r, m) zeroed and unit variance there:
+    the entries left out become inert in a solve."""
+    return S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
+        :, :, None
+    ] * np.eye(S.shape[-1])
+
+
 def fuse_inliers(S: Array, rho: Array, Pxz: Array, inlier: Array, d: int):
     """The update's one solve with only the inlying groups (r, G) of dimension d: the others
     get zero rows and columns and unit noise. With ``A = [Pxz; rho^T]``, returns
@@ -64,10 +72,7 @@ def fuse_inliers(S: Array, rho: Array, Pxz: Array, inlier: Array, d: int):
     which S factorised."""
     if not inlier.all():
         keep = np.repeat(inlier, d, axis=1)
-        m = S.shape[-1]
-        S = S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
-            :, :, None
-        ] * np.eye(m)
+        S = masked(S, keep)
         Pxz = Pxz * keep[:, None, :]
         rho = rho * keep
     A = np.concatenate((Pxz, rho[:, None]), axis=1)
@@ -98,7 +103,9 @@ def mixture(w: Array, x1: Array, P1: Array, x2: Array, P2: Array) -> tuple[Array
 @lru_cache(maxsize=64)
 def joint_gates(probability: float, d: int, G: int) -> Array:
     """The chi-square gate of a joint residual of k groups of dimension d, for k = 0 .. G."""
-    return np.array([gate_threshold(probability, max(d * k, 1)) for k in range(G + 1)])
+    gates = np.array([gate_threshold(probability, max(d * k, 1)) for k in range(G + 1)])
+    gates.flags.writeable = False  # shared by every caller through the cache
+    return gates
 
 
 @lru_cache(maxsize=64)
@@ -125,15 +132,11 @@ def exclude_inconsistent(
     is left out."""
     inlier = inlier.copy()
     r, G = inlier.shape
-    m = S.shape[-1]
     blocks = block_index(G, d)
     active = rows.copy()
     while active.any():
         keep = np.repeat(inlier, d, axis=1)
-        masked = S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
-            :, :, None
-        ] * np.eye(m)
-        S_inv = np.linalg.inv(masked)
+        S_inv = np.linalg.inv(masked(S, keep))
         e = (S_inv @ (rho * keep)[..., None])[..., 0].reshape(r, G, d)
         C = S_inv.reshape(r, -1)[:, blocks].reshape(r, G, d, d)
         given = (e * np.linalg.solve(C, e[..., None])[..., 0]).sum(-1)
