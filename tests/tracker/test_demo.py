@@ -6,6 +6,7 @@ The ``.rrd`` files are read back with rerun's own reader (``rerun.chunk.RrdReade
 from __future__ import annotations
 
 import os
+import random
 import re
 import select
 import signal
@@ -46,10 +47,22 @@ def entity_rows(path) -> dict[str, int]:
     return rows
 
 
+_PORTS = random.Random(os.getpid())
+
+
 def free_port(kind=socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind((LOOPBACK, 0))
-        return s.getsockname()[1]
+    """A loopback port free now, below the ephemeral range: a socket bound to port 0 (the
+    command's own sender, the controller) can never be handed it before the command binds
+    it."""
+    for _ in range(1000):
+        port = _PORTS.randrange(20000, 32000)
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind((LOOPBACK, port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port below the ephemeral range")
 
 
 def table_value(out: str, label: str) -> str:
