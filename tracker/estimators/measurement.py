@@ -63,7 +63,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from tracker.estimators.deviation import expansion_basis
+from tracker.estimators import ukf_kernels
 
 Array = np.ndarray
 _EYE3 = np.eye(3)
@@ -211,25 +211,34 @@ class FrameGroups:
         """
         whole = is_every_trial(b, self.y.shape[0])
         c = self.c if whole else self.c[b]
-        r, S = sigmas.shape[:2]
-        full = (r, S) + c.shape[1:]
-        if deviation is not None:
-            basis = expansion_basis(sigmas[..., deviation : deviation + 2])
-            JK = (self.JK if whole else self.JK[b]).reshape(r, -1, 5)
-            shape = (basis @ JK.mT).reshape(full) + c[:, None]
-        else:
-            shape = np.repeat(c[:, None], S, axis=1)
-        if rate is not None and self.has_velocity_group:
-            shape[..., -1, 0] -= sigmas[..., rate] * c[:, None, 0, 1]
-            shape[..., -1, 1] += sigmas[..., rate] * c[:, None, 0, 0]
+        JK = self.JK if whole else self.JK[b]
         if about is None:
-            angle = self.q[b, 0][:, None] + sigmas[..., 0]
-        else:
-            angle = sigmas[..., 0] - about[:, None]
-        # Turned in place: shape is this call's own array.
-        xy = _xy(shape)
-        np.multiply(xy, np.exp(1j * angle)[..., None], out=xy)
-        return shape
+            about = -self.q[b, 0]
+        return ukf_kernels.predict_3d(
+            np.ascontiguousarray(sigmas, dtype=float), np.ascontiguousarray(c),
+            np.ascontiguousarray(JK), np.ascontiguousarray(about, dtype=float),
+            -1 if deviation is None else deviation, -1 if rate is None else rate,
+            self.has_velocity_group,
+        ).reshape(sigmas.shape[:2] + c.shape[1:])
+
+    def innovation(
+        self, b: Array, x: Array, factor: Array, spread: float, noise: Array, Wm: Array,
+        Wc: Array, rate: int, deviation: int,
+    ) -> tuple[Array, Array, Array, Array, Array]:
+        """The UKF's innovation statistics of hypotheses x (r, n) of trials b, with the lower
+        Cholesky factors of their covariances, in the model frame at each one's prior mean:
+        ``S`` (r, m, m) with the ``noise`` (r, G, 3, 3) blocks, the residual (r, m), ``Pxz``
+        (r, n, m), each group's squared residual under its block of S (r, G) and the sigma
+        points' offsets (:func:`~tracker.estimators.ukf_kernels.innovation_3d`; ``rate``,
+        ``deviation``: indices in the state, -1 for none)."""
+        whole = is_every_trial(b, self.y.shape[0])
+        c, JK, y = (self.c, self.JK, self.y) if whole else (self.c[b], self.JK[b], self.y[b])
+        contiguous = np.ascontiguousarray
+        return ukf_kernels.innovation_3d(
+            x, factor, spread, contiguous(c), contiguous(JK), contiguous(y),
+            contiguous(self.q[b, 0]), noise, Wm, Wc, deviation, rate,
+            self.has_velocity_group,
+        )  # fmt: skip
 
     def without_velocity(self, mask: Array) -> FrameGroups:
         """The same groups with the velocity group removed where ``mask`` (B,) is True."""
@@ -301,6 +310,17 @@ class ViewGroups:
 
     def select(self, idx: Array) -> ViewGroups:
         return self
+
+    def innovation(
+        self, b: Array, x: Array, factor: Array, spread: float, noise: Array, Wm: Array,
+        Wc: Array, rate: int, deviation: int,
+    ) -> tuple[Array, Array, Array, Array, Array]:
+        """As :meth:`FrameGroups.innovation`, in image coordinates (2-D groups)."""
+        sigmas, offsets = ukf_kernels.sigma_rows(x, factor, spread)
+        r = x.shape[0]
+        hs = np.ascontiguousarray(self.predict(b, sigmas).reshape(r, sigmas.shape[1], -1))
+        z = np.ascontiguousarray(self.z[b].reshape(r, -1))
+        return ukf_kernels.innovation_stats(hs, z, offsets, noise, Wm, Wc, 2) + (offsets,)
 
 
 def check_measurement_covariance(noise: Array, present: Array) -> None:

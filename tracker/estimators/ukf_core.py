@@ -47,19 +47,17 @@ hypotheses per filter and a batch axis.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
+from tracker.estimators import ukf_kernels
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
     CovarianceError,
-    block_index,
-    block_mahalanobis,
     cholesky,
-    diagonal_blocks,
-    sigma_points,
     sigma_sqrt,
     spd_inverse,
 )
@@ -70,7 +68,6 @@ from tracker.estimators.measurement import (
     check_measurement_covariance,
     fit_frame,
     group_coefficients,
-    inlier_probability,
     is_every_trial,
     jump_probability,
     model_error_covariance,
@@ -86,12 +83,8 @@ from tracker.estimators.ukf_update import (
     StepResult,
     UpdateResult,
     doubt_threshold,
-    exclude_inconsistent,
-    fuse_inliers,
     joint_gates,
     merge_agreeing,
-    mixture,
-    posterior,
 )
 from tracker.types import Flag
 
@@ -102,6 +95,19 @@ MISMATCH_DECAY = 0.99
 # The model-mismatch inflation of the measurement covariance never exceeds this factor.
 MAX_MISMATCH_SCALE = 1e4
 _LOG_2PI = math.log(2.0 * math.pi)
+
+# The deviation prior given to the predict kernel when the state has no deviation (unused).
+_NO_PRIOR = np.zeros((1, 2))
+
+
+
+@lru_cache(maxsize=16)
+def _no_gates(G: int) -> Array:
+    """No joint-consistency gate for any number of groups (read-only, shared)."""
+    gates = np.full(G + 1, np.inf)
+    gates.flags.writeable = False
+    return gates
+
 
 _F = {name: flag.value for name, flag in Flag.__members__.items()}
 
@@ -137,6 +143,10 @@ class FilterBank:
         if self.deviation is not None:
             self._decayed[self.deviation : self.deviation + 2] = 1.0
         self._undecayed = 1.0 - self._decayed
+        # The kernels' indices (-1: not in the state).
+        self._rate_index = -1 if self.rate is None else self.rate
+        self._deviation_index = -1 if self.deviation is None else self.deviation
+        ukf_kernels.warm_up()
         self.reset(n_trials)
 
     # ------------------------------------------------------------------ state
@@ -322,7 +332,7 @@ class FilterBank:
         sigma points is exactly ``F x``, ``F P F^T + Q`` (delta_L wrapped; the sigma-point
         spread stays below pi by the std cap): that is what is computed.
         """
-        s, n = self.settings, self.n
+        s = self.settings
         b, h, rows = self._marked(self.active if all_running else self.active & running[:, None])
         if b.size == 0:
             return
@@ -330,48 +340,25 @@ class FilterBank:
             x, P = self.x[b, h], self.P[b, h]
         else:
             x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
-        r = b.size
-        P[:, 0, 0] += Q[rows]
-        if self.deviation is not None:
-            k = self.deviation
-            a = deviation_decay(
+        if self.deviation is None:
+            decay, prior = dt, _NO_PRIOR
+        else:
+            decay = deviation_decay(
                 moved[rows], s.deviation_length_mm, dt[rows], s.deviation_rate_per_s
             )
-            # F = diag(f) with f = (1, .., a, a): x f and P f f^T.
-            f = self._undecayed + a[:, None] * self._decayed
-            x *= f
-            P *= f[:, :, None] * f[:, None, :]
-            fresh = (1 - a * a)[:, None] * prior[rows]
-            P[:, k, k] += fresh[:, 0]
-            P[:, k + 1, k + 1] += fresh[:, 1]
-        if self.rate is not None:
-            j, step = self.rate, dt[rows]
-            qa = s.rate_process_noise_rad2_s3
-            x[:, 0] += step * x[:, j]
-            P[:, 0, :] += step[:, None] * P[:, j, :]
-            P[:, :, 0] += step[:, None] * P[:, :, j]
-            P[:, 0, 0] += qa * step**3 / 3.0
-            P[:, 0, j] += qa * step**2 / 2.0
-            P[:, j, 0] += qa * step**2 / 2.0
-            P[:, j, j] += qa * step
-        x[:, 0] = wrap(x[:, 0])
-        ok = np.isfinite(x).all(-1) & np.isfinite(P.reshape(r, -1)).all(-1) & (P[:, 0, 0] > 0)
-        factor = None
-        if n > 1 and ok.all():
-            factor, ok = cholesky(P)
+            prior = prior[rows]
+        ok, factor = ukf_kernels.predict_rows(
+            x, P, Q[rows], decay, prior, dt[rows], self._deviation_index, self._rate_index,
+            s.rate_process_noise_rad2_s3, self.max_variance,
+        )  # fmt: skip
         if not ok.all():
             factor = None
             bad = ~ok
             gx, gP = self._repaired(self.good_x[b[bad], h[bad]], self.good_P[b[bad], h[bad]])
             gP[:, 0, 0] += Q[b[bad]]
+            ukf_kernels.cap_rows(gP, self.max_variance)
             x[bad], P[bad] = gx, gP
             flags[b[bad]] |= _F["COVARIANCE_REPAIRED"]
-        over = P[:, 0, 0] > self.max_variance
-        if over.any():
-            factor = None
-            f = np.sqrt(self.max_variance / P[over, 0, 0])
-            P[over, 0, :] *= f[:, None]
-            P[over, :, 0] *= f[:, None]
         if rows is b:
             self.x[b, h], self.P[b, h] = x, P
         else:
@@ -653,95 +640,39 @@ class FilterBank:
         s = self.settings
         b, h, rows = marked
         r = b.size
-        G, d, n = frame.present.shape[1], frame.dim, self.n
-        m = G * d
+        G, d = frame.present.shape[1], frame.dim
         if rows is b:
             x, P = self.x[b, h], self.P[b, h]
         else:
-            # Views of slot 0: read only until the write-back at the end.
-            x, P = self.x[:, 0], self.P[:, 0]
+            # Slot 0 (views when it is the only one): read only until the write-back.
+            x, P = np.ascontiguousarray(self.x[:, 0]), np.ascontiguousarray(self.P[:, 0])
         factor = None if rows is b else self._factor
-        sigmas, dx, ok_sigma = sigma_points(x, P, self.spread, factor)
-        about = x[:, 0]
-        hs = frame.predict(rows, sigmas, self.rate, self.deviation, about).reshape(r, -1, m)
-        zp = self.Wm @ hs
-        D = hs - zp[:, None]
-        rho = rho_all = frame.measured(rows, about).reshape(r, m) - zp
-        present = frame.present[rows]
+        if factor is None:
+            factor, ok_sigma = ukf_kernels.sigma_factors(P, self.spread)
+        else:
+            ok_sigma = np.ones(r, dtype=bool)
         noise = frame.noise(rows) * scale[rows, None, None, None]
         if M is not None:
             noise += M[rows]
-        DW = D * self.Wc[:, None]
-        S = DW.mT @ D
-        S.reshape(r, m * m)[:, block_index(G, d)] += noise.reshape(r, -1)
-        # Per group: its squared residual under its block of S, the gate.
-        d2 = block_mahalanobis(S, rho, G, d)
-        threshold = outlier_threshold(d, s.outlier_probability, s.outlier_scale)
-        inlier = present & (d2 <= threshold)
-        Pxz = dx.mT @ DW
-        products, logdet_S, ok_S = fuse_inliers(S, rho, Pxz, inlier, d)
-        if math.isfinite(threshold) and G > 1:
-            # A group can fit its own block of S (prior spread included) and still contradict
-            # the others: the joint NIS then fails its chi-square gate although every group
-            # passed. Leave out, one at a time, the group least consistent with the rest.
-            n_in = inlier.sum(-1)
-            gates = joint_gates(s.gate_probability, d, G)
-            suspect = (n_in >= 2) & (products[:, n, n] > gates[n_in])
-            if suspect.any():
-                inlier = exclude_inconsistent(S, rho, inlier, suspect, d, threshold)
-                products, logdet_S, ok_S = fuse_inliers(S, rho, Pxz, inlier, d)
-        every_group = bool(inlier.all())
-        nis = products[:, n, n]
-        x_post, P_post = posterior(x, P, products, n)
-        # A group let in by its gate may still be a gross error (probability 1 - p): the
-        # posterior is then the mixture of the update with it and the update without it,
-        # matched by its moments, so that a doubtful group moves the estimate less and widens
-        # the spread by as much as it moved it.
-        doubt = inlier & (d2 > doubt_threshold(d, s.outlier_probability, s.outlier_scale))
-        if doubt.any():
-            p_in = inlier_probability(d2, d, s.outlier_probability, s.outlier_scale)
-            w = np.prod(np.where(doubt, p_in, 1.0), axis=1)
-            alternative = fuse_inliers(S, rho, Pxz, inlier & ~doubt, d)[0]
-            x_alt, P_alt = posterior(x, P, alternative, n)
-            x_post, P_post = mixture(w, x_post, P_post, x_alt, P_alt)
+        S, rho, Pxz, d2, _ = frame.innovation(
+            rows, x, factor, self.spread, noise, self.Wm, self.Wc, self._rate_index,
+            self._deviation_index,
+        )  # fmt: skip
+        present = frame.present[rows]
         p, k = s.outlier_probability, s.outlier_scale
-        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
-        per_group = math.log1p(-p) - 0.5 * d * _LOG_2PI
-        usable = ok_sigma & ok_S
-        if every_group:
-            n_in = G
-            outlier = None
+        threshold = outlier_threshold(d, p, k)
+        if math.isfinite(threshold) and G > 1:
+            gates = joint_gates(s.gate_probability, d, G)
         else:
-            n_in = inlier.sum(-1)
-            outlier = present & ~inlier
-            usable &= n_in > 0
-        log_lik = n_in * per_group - 0.5 * (nis + logdet_S)
-        if p > 0 and not every_group and outlier.any():
-            logdet_g = np.linalg.slogdet(diagonal_blocks(S, G, d))[1]
-            log_lik = log_lik + np.sum(
-                outlier * (math.log(p) - d * math.log(k) - 0.5 * d2 / k**2
-                           - 0.5 * (logdet_g + d * _LOG_2PI)), -1
-            )  # fmt: skip
-        prior_var, post_var = P[:, 0, 0], P_post[:, 0, 0]
-        post_ok = (post_var > 0) & np.isfinite(x_post[:, 0])
-        # The frame's information about delta_L (how much it shrank the variance) must
-        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
-        informative = prior_var - post_var > self.min_information * prior_var * post_var
-        settled = usable & post_ok
-        done = settled & informative
-        uninformative = settled & ~informative
-        all_done = bool(done.all())
-        if every_group:
-            status = np.zeros(r, dtype=np.int64)
-            rejected = np.zeros(r, dtype=np.int64)
-        else:
-            status = outlier.any(-1) * _F["OUTLIER_REJECTED"]
-            rejected = outlier.sum(-1)
-        if not all_done:
-            status |= np.where(done | uninformative, 0, _F["HELD"])
-            status |= np.where((n_in > 0) & ~(ok_S & post_ok), _F["COVARIANCE_REPAIRED"], 0)
-            status |= np.where(uninformative, _F["UNINFORMATIVE"] | _F["HELD"], 0)
-        if rows is not b and all_done:
+            gates = _no_gates(G)
+        x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
+            ukf_kernels.gate_and_fuse(
+                S, rho, Pxz, d2, present, ok_sigma, x, P, d, p, k, threshold,
+                doubt_threshold(d, p, k), gates, self.min_information, _F["OUTLIER_REJECTED"],
+                _F["HELD"], _F["COVARIANCE_REPAIRED"], _F["UNINFORMATIVE"],
+            )
+        )  # fmt: skip
+        if rows is not b and done.all():
             self.x[:, 0] = self.good_x[:, 0] = x_post
             self.P[:, 0] = self.good_P[:, 0] = P_post
             self.mismatch_scale = 1.0 + MISMATCH_DECAY * (self.mismatch_scale - 1.0)
@@ -750,22 +681,17 @@ class FilterBank:
             self.x[bd, hd] = self.good_x[bd, hd] = x_post[done]
             self.P[bd, hd] = self.good_P[bd, hd] = P_post[done]
             self.mismatch_scale[bd] = 1.0 + MISMATCH_DECAY * (self.mismatch_scale[bd] - 1.0)
-        log_lik = np.where(np.isfinite(log_lik), log_lik, -1e300)
         if rows is b:
             self.log_weight[b, h] += log_lik
         else:
             self.log_weight[:, 0] += log_lik
-        shown = usable & ~uninformative
         innovation = None
         if self.B == 1:
-            rho_g = rho_all.reshape(r, G, d)
-            innovation = [
-                None if not shown[i] else rho_all[i] if every_group else rho_g[i][inlier[i]].ravel()
-                for i in range(r)
-            ]
+            # The fused residuals of each shown update (the inlying groups').
+            rho_g = rho.reshape(r, G, d)
+            innovation = [rho_g[i][inlier[i]].ravel() if shown[i] else None for i in range(r)]
         return UpdateResult(
-            b=b, h=h, status=status, nis=np.where(shown, nis, np.nan),
-            dof=shown * (d * n_in), rejected=rejected, inlier=inlier,
+            b=b, h=h, status=status, nis=nis, dof=dof, rejected=rejected, inlier=inlier,
             fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,
         )  # fmt: skip
 

@@ -1,8 +1,9 @@
-"""The UKF update's results and the numerics of its group rules
-(:class:`~tracker.estimators.ukf_core.FilterBank`): the solve with only the inlying groups,
-the joint consistency of groups that each passed their gate, the mixture with the update
-without a doubtful group, and the merging of hypotheses that agree (docs/design.md, "Joint
-consistency and doubtful groups"). Rows are hypotheses; groups are of dimension d."""
+"""The UKF update's results and the constants of its group rules
+(:class:`~tracker.estimators.ukf_core.FilterBank`; the rules' arithmetic is compiled in
+:func:`~tracker.estimators.ukf_kernels.gate_and_fuse`): the gates of the joint consistency of
+groups that each passed their own, the threshold of doubt, and the merging of hypotheses
+that agree (docs/design.md, "Joint consistency and doubtful groups"). Rows are hypotheses;
+groups are of dimension d."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from tracker.estimators._linalg import block_index, spd_solve
+from tracker.estimators import ukf_kernels
 from tracker.estimators.measurement import wrap
 from tracker.estimators.ukf_settings import gate_threshold
 
@@ -57,47 +58,11 @@ MERGE_DISTANCE = 0.1
 MERGE_VARIANCE_RATIO = 1.2
 
 
-def masked(S: Array, keep: Array) -> Array:
-    """S (r, m, m) with the rows and columns not kept (r, m) zeroed and unit variance there:
-    the entries left out become inert in a solve."""
-    return S * (keep[:, :, None] & keep[:, None, :]) + np.where(keep, 0.0, 1.0)[
-        :, :, None
-    ] * np.eye(S.shape[-1])
-
-
-def fuse_inliers(S: Array, rho: Array, Pxz: Array, inlier: Array, d: int):
-    """The update's one solve with only the inlying groups (r, G) of dimension d: the others
-    get zero rows and columns and unit noise. With ``A = [Pxz; rho^T]``, returns
-    ``A S^-1 A^T = [[K Pxz^T, K rho], [., nis]]`` (gain ``K = Pxz S^-1``), log det S and
-    which S factorised."""
-    if not inlier.all():
-        keep = np.repeat(inlier, d, axis=1)
-        S = masked(S, keep)
-        Pxz = Pxz * keep[:, None, :]
-        rho = rho * keep
-    A = np.concatenate((Pxz, rho[:, None]), axis=1)
-    solved, logdet_S, ok_S = spd_solve(S, A.mT)
-    return A @ solved, logdet_S, ok_S
-
-
-def posterior(x: Array, P: Array, products: Array, n: int) -> tuple[Array, Array]:
-    """The posterior mean (delta_L wrapped) and symmetric covariance from
-    :func:`fuse_inliers`'s products."""
-    x_post = x + products[:, :n, n]
-    x_post[:, 0] = wrap(x_post[:, 0])
-    P_post = P - products[:, :n, :n]
-    return x_post, 0.5 * (P_post + P_post.mT)
-
-
 def mixture(w: Array, x1: Array, P1: Array, x2: Array, P2: Array) -> tuple[Array, Array]:
     """Mean and covariance of the mixture ``w N(x1, P1) + (1 - w) N(x2, P2)`` (rows; the
     first component of the state an angle, the two close enough for a linear mean)."""
-    diff = x1 - x2
-    diff[:, 0] = wrap(diff[:, 0])
-    x = x2 + w[:, None] * diff
-    x[:, 0] = wrap(x[:, 0])
-    spread = (w * (1.0 - w))[:, None, None] * diff[:, :, None] * diff[:, None, :]
-    return x, w[:, None, None] * P1 + (1.0 - w)[:, None, None] * P2 + spread
+    c = np.ascontiguousarray
+    return ukf_kernels.mixture_rows(c(w, dtype=float), c(x1), c(P1), c(x2), c(P2))
 
 
 @lru_cache(maxsize=64)
@@ -118,34 +83,6 @@ def doubt_threshold(d: int, outlier_probability: float, outlier_scale: float) ->
         outlier_probability / (1.0 - outlier_probability)
     )
     return 2.0 * (log_odds + d * math.log(outlier_scale)) / (1.0 - outlier_scale**-2)
-
-
-def exclude_inconsistent(
-    S: Array, rho: Array, inlier: Array, rows: Array, d: int, threshold: float
-) -> Array:
-    """Inlying groups of ``rows`` whose residual *given the other inlying groups* exceeds the
-    group threshold, left out one at a time (the worst first) while two remain.
-
-    The residual of group g given the others is Gaussian with covariance
-    ``((S^-1)_gg)^-1`` and mean zero under the model; its squared Mahalanobis length is
-    ``e_g^T ((S^-1)_gg)^-1 e_g`` with ``e = S^-1 rho``: how much the joint NIS drops when g
-    is left out."""
-    inlier = inlier.copy()
-    r, G = inlier.shape
-    blocks = block_index(G, d)
-    active = rows.copy()
-    while active.any():
-        keep = np.repeat(inlier, d, axis=1)
-        S_inv = np.linalg.inv(masked(S, keep))
-        e = (S_inv @ (rho * keep)[..., None])[..., 0].reshape(r, G, d)
-        C = S_inv.reshape(r, -1)[:, blocks].reshape(r, G, d, d)
-        given = (e * np.linalg.solve(C, e[..., None])[..., 0]).sum(-1)
-        given = np.where(inlier, given, -np.inf)
-        worst = np.argmax(given, axis=1)
-        out = active & (given[np.arange(r), worst] > threshold)
-        inlier[np.flatnonzero(out), worst[out]] = False
-        active = out & (inlier.sum(-1) >= 2)
-    return inlier
 
 
 def merge_agreeing(x: Array, P: Array, log_weight: Array, active: Array, lead: Array) -> Array:

@@ -1,0 +1,314 @@
+"""The UKF's compiled arithmetic (tracker/estimators/ukf_kernels.py) against the textbook
+formulas written here in plain numpy: the linear predict, the unscented transform of the 3-D
+measurement model, the update with only the inlying groups, the joint-consistency
+exclusion, the doubtful group's mixture and the frame's likelihood."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tracker.estimators import ukf_kernels as K
+
+RNG_SEED = 3
+
+
+def _spd(rng, n, scale=1.0):
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T / n + np.eye(n))
+
+
+def _wrap(a):
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _weights(n, alpha=0.3, beta=2.0, kappa=0.0):
+    lam = alpha**2 * (n + kappa) - n
+    Wm = np.full(2 * n + 1, 0.5 / (n + lam))
+    Wc = Wm.copy()
+    Wm[0] = lam / (n + lam)
+    Wc[0] = lam / (n + lam) + 1 - alpha**2 + beta
+    return Wm, Wc, n + lam
+
+
+# ------------------------------------------------------------------------------ predict
+@pytest.mark.parametrize("n, deviation, rate", [(1, -1, -1), (3, 1, -1), (4, 2, 1), (2, -1, 1)])
+def test_predict_is_the_linear_process_model(n, deviation, rate):
+    rng = np.random.default_rng(RNG_SEED)
+    r = 5
+    x = rng.normal(size=(r, n))
+    x[:, 0] = rng.uniform(-6, 6, r)  # delta_L beyond the circle: the predict wraps it
+    P = np.stack([_spd(rng, n, 0.01) for _ in range(r)])
+    Q, decay, dt = rng.uniform(0, 0.01, r), rng.uniform(0.2, 1, r), rng.uniform(0.01, 0.1, r)
+    prior = rng.uniform(0.001, 0.01, (r, 2))
+    qa = 0.3
+    expected_x, expected_P = [], []
+    for i in range(r):
+        F = np.eye(n)
+        Qi = np.zeros((n, n))
+        Qi[0, 0] = Q[i]
+        if deviation >= 0:
+            F[deviation, deviation] = F[deviation + 1, deviation + 1] = decay[i]
+            Qi[deviation, deviation] = (1 - decay[i] ** 2) * prior[i, 0]
+            Qi[deviation + 1, deviation + 1] = (1 - decay[i] ** 2) * prior[i, 1]
+        # The random walk's Q is added first, then the deviation decays, then the rate.
+        P0 = P[i].copy()
+        P0[0, 0] += Q[i]
+        Pi = F @ P0 @ F.T + Qi - np.diag([Q[i]] + [0] * (n - 1))
+        xi = F @ x[i]
+        if rate >= 0:
+            T = np.eye(n)
+            T[0, rate] = dt[i]
+            h = dt[i]
+            Qr = np.zeros((n, n))
+            Qr[0, 0], Qr[0, rate], Qr[rate, 0] = qa * h**3 / 3, qa * h**2 / 2, qa * h**2 / 2
+            Qr[rate, rate] = qa * h
+            Pi, xi = T @ Pi @ T.T + Qr, T @ xi
+        xi[0] = _wrap(xi[0])
+        expected_x.append(xi)
+        expected_P.append(Pi)
+    ok, L = K.predict_rows(x, P, Q, decay, prior, dt, deviation, rate, qa, 10.0)
+    assert ok.all()
+    np.testing.assert_allclose(x, expected_x, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(P, expected_P, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(L @ np.swapaxes(L, 1, 2), P, rtol=1e-12, atol=1e-15)
+    assert np.all(np.triu(L, 1) == 0)
+
+
+def test_predict_caps_the_std_keeping_correlations_and_flags_what_is_not_finite():
+    rng = np.random.default_rng(RNG_SEED)
+    P = np.stack([_spd(rng, 3) * 4.0, _spd(rng, 3) * 1e-3, _spd(rng, 3)])
+    P[2, 1, 2] = np.nan
+    x = np.zeros((3, 3))
+    before = P.copy()
+    ok, L = K.predict_rows(
+        x, P, np.zeros(3), np.ones(3), np.zeros((3, 2)), np.zeros(3), -1, -1, 0.0, 0.5
+    )
+    assert ok.tolist() == [True, True, False]
+    assert P[0, 0, 0] == pytest.approx(0.5)
+    corr = lambda A: A / np.sqrt(np.outer(np.diag(A), np.diag(A)))  # noqa: E731
+    np.testing.assert_allclose(corr(P[0]), corr(before[0]), rtol=1e-12)
+    np.testing.assert_array_equal(P[1], before[1])
+
+
+def test_a_covariance_at_the_edge_of_definiteness_factorises_with_the_jitter():
+    # Rank one plus nothing: Cholesky fails on it, the documented jitter makes it definite.
+    v = np.array([1.0, 2.0, 3.0])
+    P = np.outer(v, v)[None]
+    L, ok = K.sigma_factors(P.copy(), 1.0)
+    assert ok[0]
+    np.testing.assert_allclose(L[0] @ L[0].T, P[0], atol=1e-7)
+    L, ok = K.sigma_factors(-np.eye(3)[None], 1.0)
+    assert not ok[0]
+
+
+# ------------------------------------------------------------------------------ update
+def _frame(rng, r, G, n, deviation, rate, has_velocity):
+    c = rng.normal(size=(r, G, 3)) * 5
+    JK = rng.normal(size=(r, G, 3, 5))
+    y = rng.normal(size=(r, G, 3)) * 5
+    noise = np.stack([[_spd(rng, 3, 0.1) for _ in range(G)] for _ in range(r)])
+    x = rng.normal(size=(r, n)) * 0.1
+    P = np.stack([_spd(rng, n, 0.01) for _ in range(r)])
+    q_r = rng.uniform(-3, 3, r)
+    return c, JK, y, noise, x, P, q_r
+
+
+def _model(sigma, c, JK, about, deviation, rate, has_velocity):
+    """The 3-D measurement model of one sigma point, as docs/design.md writes it."""
+    shape = c.copy()
+    if deviation >= 0:
+        p, q = sigma[deviation], sigma[deviation + 1]
+        shape = shape + JK @ np.array([p, q, p * p, p * q, q * q])
+    if rate >= 0 and has_velocity:
+        shape[-1] += sigma[rate] * np.cross([0.0, 0.0, 1.0], c[0])
+    a = sigma[0] - about
+    Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    return (shape @ Rz.T).ravel()
+
+
+@pytest.mark.parametrize(
+    "n, deviation, rate, has_velocity", [(1, -1, -1, False), (3, 1, -1, True), (4, 2, 1, True)]
+)
+def test_innovation_is_the_unscented_transform_of_the_3d_model(n, deviation, rate, has_velocity):
+    rng = np.random.default_rng(RNG_SEED + n)
+    r, G = 3, 4
+    c, JK, y, noise, x, P, q_r = _frame(rng, r, G, n, deviation, rate, has_velocity)
+    Wm, Wc, spread = _weights(n)
+    L = np.linalg.cholesky(P)
+    S, rho, Pxz, d2, offsets = K.innovation_3d(
+        x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, has_velocity
+    )
+    for i in range(r):
+        U = np.linalg.cholesky(spread * P[i]).T
+        sigmas = np.vstack([x[i], x[i] + U, x[i] - U])
+        hs = np.array([_model(s, c[i], JK[i], x[i, 0], deviation, rate, has_velocity)
+                       for s in sigmas])  # fmt: skip
+        turn = -(q_r[i] + x[i, 0])
+        Rz = np.array([[math.cos(turn), -math.sin(turn), 0], [math.sin(turn), math.cos(turn), 0],
+                       [0, 0, 1]])  # fmt: skip
+        z = (y[i] @ Rz.T).ravel()
+        zp = Wm @ hs
+        D = hs - zp
+        expected_S = (D.T * Wc) @ D
+        for g in range(G):
+            expected_S[3 * g : 3 * g + 3, 3 * g : 3 * g + 3] += noise[i, g]
+        np.testing.assert_allclose(S[i], expected_S, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(rho[i], z - zp, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(Pxz[i], ((sigmas - x[i]).T * Wc) @ D, rtol=1e-10, atol=1e-12)
+        for g in range(G):
+            block = expected_S[3 * g : 3 * g + 3, 3 * g : 3 * g + 3]
+            e = (z - zp)[3 * g : 3 * g + 3]
+            assert d2[i, g] == pytest.approx(e @ np.linalg.solve(block, e), rel=1e-10)
+    # The same statistics from the model's predictions made apart.
+    sigmas, offsets2 = K.sigma_rows(x, L, spread)
+    np.testing.assert_allclose(offsets2, offsets, rtol=1e-14)
+    hs = K.predict_3d(sigmas, c, JK, x[:, 0].copy(), deviation, rate, has_velocity)
+    z = np.empty((r, 3 * G))
+    for i in range(r):
+        t = -(q_r[i] + x[i, 0])
+        Rz = np.array([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]])
+        z[i] = (y[i] @ Rz.T).ravel()
+    S2, rho2, Pxz2, d22 = K.innovation_stats(hs, z, offsets, noise, Wm, Wc, 3)
+    for a, b in ((S, S2), (rho, rho2), (Pxz, Pxz2), (d2, d22)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def _statistics(rng, n, G, d):
+    m = G * d
+    A = rng.normal(size=(n + m, n + m))
+    joint = A @ A.T / (n + m) + 0.1 * np.eye(n + m)
+    P = joint[:n, :n].copy()
+    Pxz = joint[:n, n:].copy()
+    S = joint[n:, n:].copy()
+    rho = rng.normal(size=m)
+    x = rng.normal(size=n) * 0.1
+    return x, P, Pxz, S, rho
+
+
+def _reference_update(x, P, Pxz, S, rho, inlier, d):
+    keep = np.repeat(inlier, d)
+    Sk, Pk, rk = S[np.ix_(keep, keep)], Pxz[:, keep], rho[keep]
+    gain = np.linalg.solve(Sk, Pk.T).T
+    x_post = x + gain @ rk
+    x_post[0] = _wrap(x_post[0])
+    P_post = P - gain @ Sk @ gain.T
+    nis = rk @ np.linalg.solve(Sk, rk)
+    return x_post, P_post, nis, np.linalg.slogdet(Sk)[1]
+
+
+def test_fuse_uses_only_the_inlying_groups():
+    rng = np.random.default_rng(RNG_SEED)
+    n, G, d = 3, 4, 3
+    rows = [_statistics(rng, n, G, d) for _ in range(4)]
+    x, P, Pxz, S, rho = (np.stack(a) for a in zip(*rows, strict=True))
+    inlier = np.array([[1, 1, 1, 1], [1, 0, 1, 1], [0, 0, 0, 1], [1, 1, 0, 0]], dtype=bool)
+    products, logdet, ok, x_post, P_post = K.fuse_rows(S, rho, Pxz, inlier, d, x, P)
+    assert ok.all()
+    for i in range(4):
+        ex, eP, nis, ld = _reference_update(x[i], P[i], Pxz[i], S[i], rho[i], inlier[i], d)
+        np.testing.assert_allclose(x_post[i], ex, rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(P_post[i], eP, rtol=1e-10, atol=1e-13)
+        assert products[i, n, n] == pytest.approx(nis, rel=1e-10)
+        assert logdet[i] == pytest.approx(ld, rel=1e-10)
+    S[0, 0, 0] = -1.0  # not positive definite: no update, reported
+    products, logdet, ok, x_post, _ = K.fuse_rows(S, rho, Pxz, inlier, d, x, P)
+    assert not ok[0] and math.isnan(logdet[0]) and not products[0].any()
+    np.testing.assert_allclose(x_post[0], x[0])
+
+
+_FLAGS = (1, 2, 4, 8)  # outlier, held, repaired, uninformative
+
+
+def _gate(S, rho, Pxz, d2, x, P, d, p=0.01, k=5.0, threshold=None, doubt=math.inf, gates=None):
+    G = d2.shape[1]
+    threshold = 2.0 * (math.log((1 - p) / p) + d * math.log(k)) / (1 - k**-2) if threshold is None else threshold
+    gates = np.full(G + 1, np.inf) if gates is None else gates
+    return K.gate_and_fuse(
+        S, rho, Pxz, d2, np.ones(d2.shape, dtype=bool), np.ones(d2.shape[0], dtype=bool), x,
+        P, d, p, k, threshold, doubt, gates, 1e-6, *_FLAGS,
+    )  # fmt: skip
+
+
+def test_the_gate_rejects_a_gross_error_and_the_likelihood_counts_it_under_the_tail():
+    rng = np.random.default_rng(RNG_SEED)
+    n, G, d = 2, 3, 3
+    x, P, Pxz, S, rho = (a[None] for a in _statistics(rng, n, G, d))
+    d2 = np.array([[1.0, 400.0, 2.0]])
+    p, k = 0.01, 5.0
+    x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = _gate(
+        S, rho, Pxz, d2, x, P, d, p, k
+    )
+    assert inlier.tolist() == [[True, False, True]]
+    assert rejected[0] == 1 and status[0] & 1 and done[0] and dof[0] == 6
+    ex, eP, enis, ld = _reference_update(x[0], P[0], Pxz[0], S[0], rho[0], inlier[0], d)
+    np.testing.assert_allclose(x_post[0], ex, rtol=1e-10)
+    assert nis[0] == pytest.approx(enis, rel=1e-10)
+    block = S[0, 3:6, 3:6]
+    expected = (
+        2 * (math.log1p(-p) - 1.5 * math.log(2 * math.pi)) - 0.5 * (enis + ld)
+        + math.log(p) - d * math.log(k) - 0.5 * 400.0 / k**2
+        - 0.5 * (np.linalg.slogdet(block)[1] + d * math.log(2 * math.pi))
+    )  # fmt: skip
+    assert log_lik[0] == pytest.approx(expected, rel=1e-10)
+
+
+def test_a_group_inconsistent_with_the_others_is_left_out():
+    rng = np.random.default_rng(RNG_SEED)
+    n, G, d = 2, 4, 3
+    m = G * d
+    # Every group sees the same uncertain 3-vector (prior variance 10) plus unit noise, so
+    # each passes its own block of S easily; group 2 is 4 off on each axis where the others
+    # agree on zero: given the others it is far outside its gate.
+    H = np.tile(np.eye(3), (G, 1))
+    S = 10.0 * H @ H.T + np.eye(m)
+    rho = rng.normal(size=m) * 0.1
+    rho[6:9] = 4.0
+    d2 = np.array([[rho[3 * g : 3 * g + 3] @ np.linalg.solve(S[3 * g : 3 * g + 3, 3 * g : 3 * g + 3],
+                                                             rho[3 * g : 3 * g + 3])
+                    for g in range(G)]])  # fmt: skip
+    assert d2.max() < 5.0
+    Pxz = rng.normal(size=(1, n, m)) * 0.05
+    x, P = np.zeros((1, n)), np.eye(n)[None] * 0.01
+    gates = np.array([math.inf] + [10.0 + 3 * k for k in range(1, G + 1)])
+    out = _gate(S[None], rho[None], Pxz, d2, x, P, d, threshold=20.0, gates=gates)
+    assert out[5].tolist() == [[True, True, False, True]]
+    ex, _, nis, _ = _reference_update(
+        x[0], P[0], Pxz[0], S, rho, np.array([True, True, False, True]), d
+    )
+    np.testing.assert_allclose(out[0][0], ex, rtol=1e-10)
+    assert out[2][0] == pytest.approx(nis, rel=1e-10) and nis < gates[3]
+    # Without the joint gate every group is let in.
+    assert _gate(S[None], rho[None], Pxz, d2, x, P, d, threshold=20.0)[5].all()
+
+
+def test_a_doubtful_group_is_mixed_with_the_update_without_it():
+    rng = np.random.default_rng(RNG_SEED)
+    n, G, d = 2, 3, 3
+    x, P, Pxz, S, rho = (a[None] for a in _statistics(rng, n, G, d))
+    p, k = 0.01, 5.0
+    d2 = np.array([[1.0, 15.0, 2.0]])
+    out = _gate(S, rho, Pxz, d2, x, P, d, p, k, threshold=30.0, doubt=10.0)
+    x_with, P_with, *_ = _reference_update(x[0], P[0], Pxz[0], S[0], rho[0], np.ones(G, bool), d)
+    x_without, P_without, *_ = _reference_update(
+        x[0], P[0], Pxz[0], S[0], rho[0], np.array([True, False, True]), d
+    )
+    log_ratio = math.log(p / (1 - p)) - d * math.log(k) + 0.5 * (1 - k**-2) * 15.0
+    w = 1 / (1 + math.exp(log_ratio))
+    diff = x_with - x_without
+    np.testing.assert_allclose(out[0][0], x_without + w * diff, rtol=1e-10)
+    expected_P = w * P_with + (1 - w) * P_without + w * (1 - w) * np.outer(diff, diff)
+    np.testing.assert_allclose(out[1][0], expected_P, rtol=1e-10)
+
+
+def test_an_uninformative_update_is_held_and_not_shown():
+    rng = np.random.default_rng(RNG_SEED)
+    n, G, d = 2, 2, 3
+    x, P, Pxz, S, rho = (a[None] for a in _statistics(rng, n, G, d))
+    Pxz[:] = 0.0  # the frame says nothing about the state
+    out = _gate(S, rho, Pxz, np.ones((1, G)), x, P, d)
+    x_post, _, nis, dof, _, _, status, _, done, shown = out
+    assert not done[0] and not shown[0] and math.isnan(nis[0]) and dof[0] == 0
+    assert status[0] == 2 | 8

@@ -1,0 +1,956 @@
+"""The UKF's per-hypothesis arithmetic, compiled (numba): the numbers behind the rules of
+:mod:`tracker.estimators.ukf_core`, which stay in Python and decide what is done to whom.
+
+A hypothesis' state has one to four components and a frame a few groups of two or three
+values, so numpy spends ten times the arithmetic on calling its stacked routines for each
+small array. Here each stage of a step is one compiled loop over the rows (hypotheses) it is
+given; the live filter (one row) and the trial-batched studies (thousands) call the same
+loops:
+
+- :func:`predict_rows`: the linear process model, ``F x``, ``F P F^T + Q`` (delta_L wrapped),
+  the finiteness test and the Cholesky factor that the update's sigma points reuse, the std
+  cap (:func:`cap_rows`);
+- :func:`innovation_3d`: van der Merwe's sigma points, the 3-D measurement model at each of
+  them in the model frame (:meth:`~tracker.estimators.measurement.FrameGroups.predict`),
+  the measured vectors turned into that frame, and the innovation statistics;
+- :func:`innovation_stats`: the innovation statistics of predictions made elsewhere (the
+  single views' projections): the weighted mean, the residual, the innovation covariance
+  ``S`` with its noise blocks, the cross-covariance ``Pxz`` and each group's squared
+  residual under its own block of ``S`` (the gate);
+- :func:`fuse_rows`: the update with only the inlying groups (the others made inert: zero
+  rows and columns, unit variance), one Cholesky solve for the gain, the NIS and the log
+  determinant, and the posterior mean and covariance.
+
+Factorisations are Cholesky's, as LAPACK's ``potrf`` computes them (the same operations in
+the same order for these sizes: results equal to rounding), with the documented jitter of
+:mod:`tracker.estimators._linalg` on a second attempt where the Python code retried.
+Every kernel is ``njit(cache=True, nogil=True)``, compiled to ``__pycache__`` once and
+loaded afterwards; :func:`warm_up` compiles or loads them when a filter is made, so that no
+frame waits. Arrays are float64 and C-contiguous (another layout would compile a second
+version on first use).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# As tracker.estimators._linalg (the same documented jitter).
+_JITTER = 1e-9
+_JITTER_FLOOR = 1e-15
+_TWO_PI = 2.0 * math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrap(angle):
+    return (angle + math.pi) % _TWO_PI - math.pi
+
+
+@numba.njit(cache=True, nogil=True)
+def _cholesky_into(A, L):
+    """Lower Cholesky factor of A (m, m) into L; False if A is not positive definite."""
+    m = A.shape[0]
+    for j in range(m):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _cholesky_jittered(A, L, work):
+    """:func:`_cholesky_into`, retried once on the symmetrised A with the documented jitter
+    (``_JITTER`` times the mean variance, at least ``_JITTER_FLOOR``); False if both fail or
+    A is not finite."""
+    m = A.shape[0]
+    for i in range(m):
+        for j in range(m):
+            if not math.isfinite(A[i, j]):
+                return False
+    if _cholesky_into(A, L):
+        return True
+    trace = 0.0
+    for i in range(m):
+        for j in range(m):
+            work[i, j] = 0.5 * (A[i, j] + A[j, i])
+        trace += work[i, i]
+    jitter = max(_JITTER * max(trace / m, 0.0), _JITTER_FLOOR)
+    for i in range(m):
+        work[i, i] += jitter
+    return _cholesky_into(work, L)
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_lower(L, b):
+    """Solve L L^T x = b in place (L lower, b (m,))."""
+    m = L.shape[0]
+    for i in range(m):
+        t = b[i]
+        for k in range(i):
+            t -= L[i, k] * b[k]
+        b[i] = t / L[i, i]
+    for i in range(m - 1, -1, -1):
+        t = b[i]
+        for k in range(i + 1, m):
+            t -= L[k, i] * b[k]
+        b[i] = t / L[i, i]
+
+
+# ------------------------------------------------------------------------------ predict
+@numba.njit(cache=True, nogil=True)
+def cap_rows(P, max_variance):
+    """Scale row and column 0 of each covariance (r, n, n) whose delta_L variance exceeds
+    ``max_variance`` so that it equals it (a std cap that keeps the correlations); which rows
+    were capped (r,)."""
+    r, n = P.shape[0], P.shape[1]
+    capped = np.zeros(r, dtype=np.bool_)
+    for i in range(r):
+        if P[i, 0, 0] > max_variance:
+            f = math.sqrt(max_variance / P[i, 0, 0])
+            for j in range(n):
+                P[i, 0, j] *= f
+            for j in range(n):
+                P[i, j, 0] *= f
+            capped[i] = True
+    return capped
+
+
+@numba.njit(cache=True, nogil=True)
+def predict_rows(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_variance):
+    """The process model of r hypotheses in place, and the Cholesky factors of their
+    predicted covariances.
+
+    Parameters
+    ----------
+    x : array (r, n), P : array (r, n, n)
+        States and covariances, changed in place.
+    Q : array (r,)
+        Variance of the torsion change over the interval, rad^2.
+    decay : array (r,)
+        The deviation's correlation over the interval (:func:`~tracker.estimators.
+        deviation.deviation_decay`); unused without a deviation.
+    prior : array (r, 2)
+        The deviation's prior variance at the frame's joints, mm^2 (its fresh part is
+        ``(1 - decay^2) prior``).
+    dt : array (r,)
+        Frame interval, s (the rate's integration).
+    deviation, rate : int
+        Index of the deviation (dq_p, dq_d) and of the torsion rate in the state; -1: none.
+    rate_noise : float
+        Process noise of the rate, rad^2/s^3.
+    max_variance : float
+        The delta_L variance cap, rad^2.
+
+    Returns
+    -------
+    ok : bool array (r,)
+        Finite, positive delta_L variance, and (n > 1) positive definite after the jitter.
+    L : array (r, n, n)
+        Lower Cholesky factors of the predicted (capped) covariances where ok.
+    """
+    r, n = x.shape
+    ok = np.zeros(r, dtype=np.bool_)
+    L = np.zeros((r, n, n))
+    work = np.empty((n, n))
+    for i in range(r):
+        Pi = P[i]
+        Pi[0, 0] += Q[i]
+        if deviation >= 0:
+            a = decay[i]
+            k = deviation
+            for j in (k, k + 1):
+                x[i, j] *= a
+                for c in range(n):
+                    Pi[j, c] *= a
+                for c in range(n):
+                    Pi[c, j] *= a
+            fresh = 1.0 - a * a
+            Pi[k, k] += fresh * prior[i, 0]
+            Pi[k + 1, k + 1] += fresh * prior[i, 1]
+        if rate >= 0:
+            j, step = rate, dt[i]
+            x[i, 0] += step * x[i, j]
+            for c in range(n):
+                Pi[0, c] += step * Pi[j, c]
+            for c in range(n):
+                Pi[c, 0] += step * Pi[c, j]
+            Pi[0, 0] += rate_noise * step**3 / 3.0
+            Pi[0, j] += rate_noise * step**2 / 2.0
+            Pi[j, 0] += rate_noise * step**2 / 2.0
+            Pi[j, j] += rate_noise * step
+        x[i, 0] = _wrap(x[i, 0])
+        good = Pi[0, 0] > 0.0
+        for a_ in range(n):
+            good = good and math.isfinite(x[i, a_])
+            for c in range(n):
+                good = good and math.isfinite(Pi[a_, c])
+        if not good:
+            continue
+        if Pi[0, 0] > max_variance:
+            f = math.sqrt(max_variance / Pi[0, 0])
+            for c in range(n):
+                Pi[0, c] *= f
+            for c in range(n):
+                Pi[c, 0] *= f
+        if n == 1:
+            L[i, 0, 0] = math.sqrt(Pi[0, 0])
+            ok[i] = True
+        else:
+            ok[i] = _cholesky_jittered(Pi, L[i], work)
+    return ok, L
+
+
+# ------------------------------------------------------------------------------ update
+@numba.njit(cache=True, nogil=True)
+def _sigma_offsets(L, spread, offsets):
+    """offsets (S, n): 0, then +- the columns of sqrt(spread) L."""
+    n = L.shape[0]
+    root = math.sqrt(spread)
+    for a in range(n):
+        offsets[0, a] = 0.0
+    for col in range(n):
+        for a in range(n):
+            v = root * L[a, col]
+            offsets[1 + col, a] = v
+            offsets[1 + n + col, a] = -v
+
+
+@numba.njit(cache=True, nogil=True)
+def sigma_factors(P, spread):
+    """Lower Cholesky factors of covariances (r, n, n) for the sigma points (with the
+    jitter's second attempt), and which factorised (r,)."""
+    r, n = P.shape[0], P.shape[1]
+    L = np.zeros((r, n, n))
+    ok = np.zeros(r, dtype=np.bool_)
+    work = np.empty((n, n))
+    for i in range(r):
+        if n == 1:
+            a = P[i, 0, 0]
+            ok[i] = math.isfinite(a) and a >= -_JITTER_FLOOR
+            L[i, 0, 0] = math.sqrt(max(a, _JITTER_FLOOR)) if ok[i] else 1.0
+        else:
+            ok[i] = _cholesky_jittered(P[i], L[i], work)
+    return L, ok
+
+
+@numba.njit(cache=True, nogil=True)
+def sigma_rows(x, L, spread):
+    """van der Merwe's sigma points of states x (r, n) with factors L (r, n, n): the points
+    (r, 2n + 1, n) and their offsets from x."""
+    r, n = x.shape
+    S = 2 * n + 1
+    offsets = np.empty((r, S, n))
+    sigmas = np.empty((r, S, n))
+    for i in range(r):
+        _sigma_offsets(L[i], spread, offsets[i])
+        for s in range(S):
+            for a in range(n):
+                sigmas[i, s, a] = x[i, a] + offsets[i, s, a]
+    return sigmas, offsets
+
+
+@numba.njit(cache=True, nogil=True)
+def _statistics(hs, z, offsets, noise, Wm, Wc, G, d, S, rho, Pxz, d2, zp, D, block, work):
+    """One row's innovation statistics (see :func:`innovation_stats`)."""
+    n_sigma, m = hs.shape
+    n = offsets.shape[1]
+    for j in range(m):
+        t = 0.0
+        for s in range(n_sigma):
+            t += Wm[s] * hs[s, j]
+        zp[j] = t
+    for s in range(n_sigma):
+        for j in range(m):
+            D[s, j] = hs[s, j] - zp[j]
+    for j in range(m):
+        rho[j] = z[j] - zp[j]
+    for a in range(m):
+        for b in range(a, m):
+            t = 0.0
+            for s in range(n_sigma):
+                t += Wc[s] * D[s, a] * D[s, b]
+            S[a, b] = t
+            S[b, a] = t
+    for g in range(G):
+        for a in range(d):
+            for b in range(d):
+                S[g * d + a, g * d + b] += noise[g, a, b]
+    for a in range(n):
+        for j in range(m):
+            t = 0.0
+            for s in range(n_sigma):
+                t += offsets[s, a] * Wc[s] * D[s, j]
+            Pxz[a, j] = t
+    for g in range(G):
+        for a in range(d):
+            for b in range(d):
+                block[a, b] = S[g * d + a, g * d + b]
+            work[a] = rho[g * d + a]
+        if _cholesky_into(block, block):
+            _solve_lower(block, work)
+            t = 0.0
+            for a in range(d):
+                t += rho[g * d + a] * work[a]
+            d2[g] = t
+        else:
+            d2[g] = math.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def innovation_stats(hs, z, offsets, noise, Wm, Wc, d):
+    """The innovation statistics of r hypotheses from predicted measurements.
+
+    Parameters
+    ----------
+    hs : array (r, S, m)
+        The measurement model at each sigma point, m = G d.
+    z : array (r, m)
+        The measured values.
+    offsets : array (r, S, n)
+        The sigma points' offsets from the mean.
+    noise : array (r, G, d, d)
+        Each group's noise covariance.
+    Wm, Wc : arrays (S,)
+        Sigma-point weights of the mean and the covariance.
+    d : int
+        Dimension of a group.
+
+    Returns
+    -------
+    S : array (r, m, m)
+        ``sum_s Wc dz dz^T`` plus the noise blocks.
+    rho : array (r, m)
+        Residual ``z - sum_s Wm hs``.
+    Pxz : array (r, n, m)
+        Cross-covariance of state and measurement.
+    d2 : array (r, G)
+        Each group's squared residual under its block of S (inf where that block is not
+        positive definite: the gate rejects it).
+    """
+    r, n_sigma, m = hs.shape
+    n = offsets.shape[2]
+    G = m // d
+    S = np.empty((r, m, m))
+    rho = np.empty((r, m))
+    Pxz = np.empty((r, n, m))
+    d2 = np.empty((r, G))
+    zp = np.empty(m)
+    D = np.empty((n_sigma, m))
+    block = np.empty((d, d))
+    work = np.empty(d)
+    for i in range(r):
+        _statistics(
+            hs[i], z[i], offsets[i], noise[i], Wm, Wc, G, d, S[i], rho[i], Pxz[i], d2[i], zp,
+            D, block, work,
+        )
+    return S, rho, Pxz, d2
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity, hs):
+    """One row's :meth:`FrameGroups.predict` into hs (S, G * 3)."""
+    n_sigma = sigmas.shape[0]
+    G = c.shape[0]
+    basis = np.empty(5)
+    for s in range(n_sigma):
+        angle = sigmas[s, 0] - about
+        cs, sn = math.cos(angle), math.sin(angle)
+        if deviation >= 0:
+            p, q = sigmas[s, deviation], sigmas[s, deviation + 1]
+            basis[0], basis[1], basis[2], basis[3], basis[4] = p, q, p * p, p * q, q * q
+        for g in range(G):
+            v0, v1, v2 = c[g, 0], c[g, 1], c[g, 2]
+            if deviation >= 0:
+                t0 = 0.0
+                t1 = 0.0
+                t2 = 0.0
+                for e in range(5):
+                    t0 += basis[e] * JK[g, 0, e]
+                    t1 += basis[e] * JK[g, 1, e]
+                    t2 += basis[e] * JK[g, 2, e]
+                v0 += t0
+                v1 += t1
+                v2 += t2
+            if rate >= 0 and has_velocity and g == G - 1:
+                v0 -= sigmas[s, rate] * c[0, 1]
+                v1 += sigmas[s, rate] * c[0, 0]
+            hs[s, 3 * g] = cs * v0 - sn * v1
+            hs[s, 3 * g + 1] = sn * v0 + cs * v1
+            hs[s, 3 * g + 2] = v2
+
+
+@numba.njit(cache=True, nogil=True)
+def predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity):
+    """The 3-D measurement model at sigma points (r, S, n) of r hypotheses, in the model
+    frame at angle ``about`` (r,): ``Rz(x_0 - about) (c + [J K] basis(dq))``, plus ``rate e_z
+    x c_tip`` on the velocity group, (r, S, G * 3). Arguments as :func:`innovation_3d`."""
+    r, n_sigma = sigmas.shape[0], sigmas.shape[1]
+    G = c.shape[1]
+    hs = np.empty((r, n_sigma, 3 * G))
+    for i in range(r):
+        _predict_3d(sigmas[i], c[i], JK[i], about[i], deviation, rate, has_velocity, hs[i])
+    return hs
+
+
+@numba.njit(cache=True, nogil=True)
+def innovation_3d(x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, has_velocity):
+    """Sigma points, the 3-D measurement model and the innovation statistics of r
+    hypotheses, in the model frame at each one's prior mean (the measured vectors turned by
+    ``-(q_r + x_0)``).
+
+    Parameters
+    ----------
+    x : array (r, n), L : array (r, n, n)
+        Prior means and the lower Cholesky factors of their covariances.
+    spread : float
+        (lambda + n) of the sigma points.
+    c : array (r, G, 3), JK : array (r, G, 3, 5)
+        Model vectors and their expansion in the deviation
+        (:class:`~tracker.estimators.measurement.FrameGroups`).
+    y : array (r, G, 3)
+        Measured vectors in {B}.
+    q_r : array (r,)
+        Base rotation, rad.
+    noise : array (r, G, 3, 3)
+        Each group's noise covariance in the model frame.
+    Wm, Wc : arrays (2n + 1,)
+    deviation, rate : int
+        Indices in the state (-1: none).
+    has_velocity : bool
+        The last group is the velocity (the rate adds ``rate e_z x c_tip`` to it).
+
+    Returns
+    -------
+    S, rho, Pxz, d2 : as :func:`innovation_stats` (d = 3)
+    offsets : array (r, 2n + 1, n)
+        The sigma points' offsets.
+    """
+    r, n = x.shape
+    G = c.shape[1]
+    m = 3 * G
+    n_sigma = 2 * n + 1
+    S = np.empty((r, m, m))
+    rho = np.empty((r, m))
+    Pxz = np.empty((r, n, m))
+    d2 = np.empty((r, G))
+    offsets = np.empty((r, n_sigma, n))
+    sigmas = np.empty((n_sigma, n))
+    hs = np.empty((n_sigma, m))
+    z = np.empty(m)
+    zp = np.empty(m)
+    D = np.empty((n_sigma, m))
+    block = np.empty((3, 3))
+    work = np.empty(3)
+    for i in range(r):
+        _sigma_offsets(L[i], spread, offsets[i])
+        for s in range(n_sigma):
+            for a in range(n):
+                sigmas[s, a] = x[i, a] + offsets[i, s, a]
+        about = x[i, 0]
+        _predict_3d(sigmas, c[i], JK[i], about, deviation, rate, has_velocity, hs)
+        turn = -(q_r[i] + about)
+        cs, sn = math.cos(turn), math.sin(turn)
+        for g in range(G):
+            y0, y1 = y[i, g, 0], y[i, g, 1]
+            z[3 * g] = cs * y0 - sn * y1
+            z[3 * g + 1] = sn * y0 + cs * y1
+            z[3 * g + 2] = y[i, g, 2]
+        _statistics(
+            hs, z, offsets[i], noise[i], Wm, Wc, G, 3, S[i], rho[i], Pxz[i], d2[i], zp, D,
+            block, work,
+        )
+    return S, rho, Pxz, d2, offsets
+
+
+@numba.njit(cache=True, nogil=True)
+def fuse_rows(S, rho, Pxz, inlier, d, x, P):
+    """The update of r hypotheses with only their inlying groups.
+
+    The groups left out get zero rows and columns and unit variance (inert in the solve).
+    With ``A = [Pxz; rho^T]`` and the gain ``K = Pxz S^-1``, the products ``A S^-1 A^T =
+    [[K Pxz^T, K rho], [., nis]]`` give the posterior ``x + K rho`` (delta_L wrapped) and
+    ``P - K S K^T`` (symmetrised).
+
+    Parameters
+    ----------
+    S : array (r, m, m), rho : array (r, m), Pxz : array (r, n, m)
+        From :func:`innovation_stats`.
+    inlier : bool array (r, G)
+    d : int
+        Dimension of a group.
+    x : array (r, n), P : array (r, n, n)
+        The priors.
+
+    Returns
+    -------
+    products : array (r, n + 1, n + 1)
+        ``A S^-1 A^T`` (zeros where S did not factorise); ``products[:, n, n]`` is the NIS.
+    logdet : array (r,)
+        log det of the masked S (NaN where it did not factorise).
+    ok : bool array (r,)
+    x_post : array (r, n), P_post : array (r, n, n)
+    """
+    r, m = rho.shape
+    n = Pxz.shape[1]
+    products = np.zeros((r, n + 1, n + 1))
+    logdet = np.full(r, np.nan)
+    ok = np.zeros(r, dtype=np.bool_)
+    x_post = np.empty((r, n))
+    P_post = np.empty((r, n, n))
+    Sm = np.empty((m, m))
+    A = np.empty((n + 1, m))
+    solved = np.empty((n + 1, m))
+    keep = np.empty(m, dtype=np.bool_)
+    for i in range(r):
+        for j in range(m):
+            keep[j] = inlier[i, j // d]
+        for a in range(m):
+            for b in range(m):
+                if keep[a] and keep[b]:
+                    Sm[a, b] = S[i, a, b]
+                elif a == b:
+                    Sm[a, b] = 1.0
+                else:
+                    Sm[a, b] = 0.0
+        for j in range(m):
+            for a in range(n):
+                A[a, j] = Pxz[i, a, j] if keep[j] else 0.0
+            A[n, j] = rho[i, j] if keep[j] else 0.0
+        if _cholesky_into(Sm, Sm):
+            ok[i] = True
+            t = 0.0
+            for j in range(m):
+                t += math.log(Sm[j, j])
+            logdet[i] = 2.0 * t
+            for a in range(n + 1):
+                for j in range(m):
+                    solved[a, j] = A[a, j]
+                _solve_lower(Sm, solved[a])
+            for a in range(n + 1):
+                for b in range(a, n + 1):
+                    t = 0.0
+                    for j in range(m):
+                        t += A[a, j] * solved[b, j]
+                    products[i, a, b] = t
+                    products[i, b, a] = t
+        for a in range(n):
+            x_post[i, a] = x[i, a] + products[i, a, n]
+        x_post[i, 0] = _wrap(x_post[i, 0])
+        for a in range(n):
+            for b in range(n):
+                P_post[i, a, b] = P[i, a, b] - products[i, a, b]
+        for a in range(n):
+            for b in range(a + 1, n):
+                t = 0.5 * (P_post[i, a, b] + P_post[i, b, a])
+                P_post[i, a, b] = t
+                P_post[i, b, a] = t
+    return products, logdet, ok, x_post, P_post
+
+
+@numba.njit(cache=True, nogil=True)
+def _fuse_row(S, rho, Pxz, inlier, d, x, P, products, x_post, P_post, Sm, A, solved, keep):
+    """One row of :func:`fuse_rows` into products, x_post, P_post; (logdet, ok)."""
+    m = rho.shape[0]
+    n = Pxz.shape[0]
+    for j in range(m):
+        keep[j] = inlier[j // d]
+    for a in range(m):
+        for b in range(m):
+            if keep[a] and keep[b]:
+                Sm[a, b] = S[a, b]
+            elif a == b:
+                Sm[a, b] = 1.0
+            else:
+                Sm[a, b] = 0.0
+    for j in range(m):
+        for a in range(n):
+            A[a, j] = Pxz[a, j] if keep[j] else 0.0
+        A[n, j] = rho[j] if keep[j] else 0.0
+    logdet = math.nan
+    ok = _cholesky_into(Sm, Sm)
+    for a in range(n + 1):
+        for b in range(n + 1):
+            products[a, b] = 0.0
+    if ok:
+        t = 0.0
+        for j in range(m):
+            t += math.log(Sm[j, j])
+        logdet = 2.0 * t
+        for a in range(n + 1):
+            for j in range(m):
+                solved[a, j] = A[a, j]
+            _solve_lower(Sm, solved[a])
+        for a in range(n + 1):
+            for b in range(a, n + 1):
+                t = 0.0
+                for j in range(m):
+                    t += A[a, j] * solved[b, j]
+                products[a, b] = t
+                products[b, a] = t
+    for a in range(n):
+        x_post[a] = x[a] + products[a, n]
+    x_post[0] = _wrap(x_post[0])
+    for a in range(n):
+        for b in range(n):
+            P_post[a, b] = P[a, b] - products[a, b]
+    for a in range(n):
+        for b in range(a + 1, n):
+            t = 0.5 * (P_post[a, b] + P_post[b, a])
+            P_post[a, b] = t
+            P_post[b, a] = t
+    return logdet, ok
+
+
+@numba.njit(cache=True, nogil=True)
+def _lu_solve(A, b, work):
+    """Solve A x = b in place (b (m,) or (m, k)) by Gaussian elimination with partial
+    pivoting on a copy ``work`` of A; log |det A| (-inf if singular)."""
+    m = A.shape[0]
+    for i in range(m):
+        for j in range(m):
+            work[i, j] = A[i, j]
+    logdet = 0.0
+    for col in range(m):
+        pivot = col
+        for i in range(col + 1, m):
+            if abs(work[i, col]) > abs(work[pivot, col]):
+                pivot = i
+        if work[pivot, col] == 0.0:
+            return -math.inf
+        if pivot != col:
+            for j in range(m):
+                work[col, j], work[pivot, j] = work[pivot, j], work[col, j]
+            for j in range(b.shape[1]):
+                b[col, j], b[pivot, j] = b[pivot, j], b[col, j]
+        logdet += math.log(abs(work[col, col]))
+        for i in range(col + 1, m):
+            f = work[i, col] / work[col, col]
+            for j in range(col, m):
+                work[i, j] -= f * work[col, j]
+            for j in range(b.shape[1]):
+                b[i, j] -= f * b[col, j]
+    for col in range(m - 1, -1, -1):
+        for j in range(b.shape[1]):
+            t = b[col, j]
+            for k in range(col + 1, m):
+                t -= work[col, k] * b[k, j]
+            b[col, j] = t / work[col, col]
+    return logdet
+
+
+@numba.njit(cache=True, nogil=True)
+def _exclude_inconsistent(S, rho, inlier, d, threshold):
+    """Inlying groups whose residual *given the other inlying groups* exceeds the group
+    threshold, left out one at a time (the worst first) while two remain (in place).
+
+    The residual of group g given the others is Gaussian with covariance
+    ``((S^-1)_gg)^-1`` and mean zero under the model; its squared Mahalanobis length is
+    ``e_g^T ((S^-1)_gg)^-1 e_g`` with ``e = S^-1 rho``: how much the joint NIS drops when g
+    is left out."""
+    m = rho.shape[0]
+    G = m // d
+    Sm = np.empty((m, m))
+    inverse = np.empty((m, m))
+    work = np.empty((m, m))
+    block = np.empty((d, d))
+    rhs = np.empty((d, 1))
+    small = np.empty((d, d))
+    while True:
+        for a in range(m):
+            for b in range(m):
+                both = inlier[a // d] and inlier[b // d]
+                Sm[a, b] = S[a, b] if both else (1.0 if a == b else 0.0)
+                inverse[a, b] = 1.0 if a == b else 0.0
+        if _lu_solve(Sm, inverse, work) == -math.inf:
+            return
+        worst, largest = -1, -math.inf
+        for g in range(G):
+            if not inlier[g]:
+                continue
+            for a in range(d):
+                t = 0.0
+                for j in range(m):
+                    if inlier[j // d]:
+                        t += inverse[g * d + a, j] * rho[j]
+                rhs[a, 0] = t
+                for b in range(d):
+                    block[a, b] = inverse[g * d + a, g * d + b]
+            e = rhs.copy()
+            if _lu_solve(block, rhs, small) == -math.inf:
+                continue
+            given = 0.0
+            for a in range(d):
+                given += e[a, 0] * rhs[a, 0]
+            if given > largest:
+                worst, largest = g, given
+        if worst < 0 or not largest > threshold:
+            return
+        inlier[worst] = False
+        count = 0
+        for g in range(G):
+            count += inlier[g]
+        if count < 2:
+            return
+
+
+@numba.njit(cache=True, nogil=True)
+def _mixture_row(w, x1, P1, x2, P2, x, P, diff):
+    """Mean x and covariance P (may be x1, P1) of ``w N(x1, P1) + (1 - w) N(x2, P2)``, the
+    first component an angle (the two close enough for a linear mean)."""
+    n = x1.shape[0]
+    for a in range(n):
+        diff[a] = x1[a] - x2[a]
+    diff[0] = _wrap(diff[0])
+    for a in range(n):
+        for b in range(n):
+            P[a, b] = w * P1[a, b] + (1.0 - w) * P2[a, b] + w * (1.0 - w) * diff[a] * diff[b]
+    for a in range(n):
+        x[a] = x2[a] + w * diff[a]
+    x[0] = _wrap(x[0])
+
+
+@numba.njit(cache=True, nogil=True)
+def mixture_rows(w, x1, P1, x2, P2):
+    """Mean (r, n) and covariance (r, n, n) of the mixtures ``w N(x1, P1) + (1 - w) N(x2,
+    P2)`` of r pairs of Gaussians (weights w (r,)), matched by moments; the first component
+    of the state an angle."""
+    r, n = x1.shape
+    x = np.empty((r, n))
+    P = np.empty((r, n, n))
+    diff = np.empty(n)
+    for i in range(r):
+        _mixture_row(w[i], x1[i], P1[i], x2[i], P2[i], x[i], P[i], diff)
+    return x, P
+
+
+@numba.njit(cache=True, nogil=True)
+def gate_and_fuse(
+    S, rho, Pxz, d2, present, ok_sigma, x, P, d, outlier_probability, outlier_scale,
+    threshold, doubt, gates, min_information, flag_outlier, flag_held, flag_repaired,
+    flag_uninformative,
+):  # fmt: skip
+    """The update's rules for r hypotheses, given their innovation statistics (docs/design.md,
+    "Joint consistency and doubtful groups").
+
+    Per hypothesis: a group is an inlier when present and its squared residual ``d2`` is
+    within ``threshold`` (where its posterior probability of being a gross error is one
+    half); the inliers are fused in one solve. When two or more inliers pass alone but their
+    joint NIS exceeds ``gates[count]`` (its chi-square gate), the group least consistent
+    with the others is left out, one at a time (:func:`_exclude_inconsistent`). Inliers
+    beyond ``doubt`` (a gross error with probability above ``DOUBT_PROBABILITY``) are doubtful:
+    the posterior is the moment-matched mixture of the update with them (weight: the product
+    of their inlier probabilities) and the update without them. The frame's log-likelihood
+    under the hypothesis counts the inliers as Gaussian and the rejected groups under the
+    heavy tail.
+
+    Parameters
+    ----------
+    S, rho, Pxz, d2 : arrays
+        From :func:`innovation_stats` or :func:`innovation_3d`.
+    present : bool array (r, G)
+    ok_sigma : bool array (r,)
+        Whether the sigma points' factorisation succeeded.
+    x, P : arrays (r, n), (r, n, n)
+        The priors.
+    d : int
+        Dimension of a group.
+    outlier_probability, outlier_scale : float
+        The heavy-tailed component: its probability and its widening.
+    threshold, doubt : float
+        Squared residuals of the gate and of doubt (inf: none).
+    gates : array (G + 1,)
+        The joint NIS gate of k inlying groups (inf: no consistency check).
+    min_information : float
+        Least information about delta_L (1/rad^2) for an update to count.
+    flag_* : int
+        The values of ``Flag.OUTLIER_REJECTED``, ``HELD``, ``COVARIANCE_REPAIRED`` and
+        ``UNINFORMATIVE``.
+
+    Returns
+    -------
+    x_post, P_post : arrays (r, n), (r, n, n)
+    nis : array (r,)
+        The NIS of the inliers (NaN where the update is not shown: unusable or
+        uninformative).
+    dof : int array (r,)
+        Its degrees of freedom (0 where not shown).
+    log_lik : array (r,)
+        The frame's log-likelihood under each hypothesis (-1e300 where not finite).
+    inlier : bool array (r, G)
+    status : int array (r,)
+        Flags of the update.
+    rejected : int array (r,)
+        Groups rejected as gross errors.
+    done : bool array (r,)
+        Whether the posterior replaces the prior.
+    innovation_shown : bool array (r,)
+        Whether the update is shown (usable and informative).
+    """
+    r, m = rho.shape
+    n = x.shape[1]
+    G = m // d
+    x_post = np.empty((r, n))
+    P_post = np.empty((r, n, n))
+    nis_out = np.empty(r)
+    dof = np.zeros(r, dtype=np.int64)
+    log_lik = np.empty(r)
+    inlier = np.zeros((r, G), dtype=np.bool_)
+    status = np.zeros(r, dtype=np.int64)
+    rejected = np.zeros(r, dtype=np.int64)
+    done = np.zeros(r, dtype=np.bool_)
+    shown = np.zeros(r, dtype=np.bool_)
+    products = np.empty((n + 1, n + 1))
+    alt_products = np.empty((n + 1, n + 1))
+    x_alt = np.empty(n)
+    P_alt = np.empty((n, n))
+    diff = np.empty(n)
+    Sm = np.empty((m, m))
+    A = np.empty((n + 1, m))
+    solved = np.empty((n + 1, m))
+    keep = np.empty(m, dtype=np.bool_)
+    fewer = np.empty(G, dtype=np.bool_)
+    block = np.empty((d, d))
+    work = np.empty((d, d))
+    eye = np.empty((d, 1))
+    log_2pi = math.log(2.0 * math.pi)
+    per_group = math.log1p(-outlier_probability) - 0.5 * d * log_2pi
+    for i in range(r):
+        row_in = inlier[i]
+        for g in range(G):
+            row_in[g] = present[i, g] and d2[i, g] <= threshold
+        logdet, ok_S = _fuse_row(
+            S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i], P_post[i],
+            Sm, A, solved, keep,
+        )  # fmt: skip
+        count = 0
+        for g in range(G):
+            count += row_in[g]
+        if count >= 2 and products[n, n] > gates[count]:
+            _exclude_inconsistent(S[i], rho[i], row_in, d, threshold)
+            logdet, ok_S = _fuse_row(
+                S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i],
+                P_post[i], Sm, A, solved, keep,
+            )  # fmt: skip
+        count = 0
+        for g in range(G):
+            count += row_in[g]
+        nis = products[n, n]
+        # A doubtful inlier: the mixture of the update with it and the update without it.
+        w = 1.0
+        any_doubt = False
+        for g in range(G):
+            fewer[g] = row_in[g]
+            if row_in[g] and d2[i, g] > doubt:
+                any_doubt = True
+                fewer[g] = False
+                log_ratio = (
+                    math.log(outlier_probability / (1.0 - outlier_probability))
+                    - d * math.log(outlier_scale)
+                    + 0.5 * (1.0 - outlier_scale**-2) * min(d2[i, g], 1e4)
+                )
+                w *= 1.0 / (1.0 + math.exp(min(log_ratio, 700.0)))
+        if any_doubt:
+            _fuse_row(
+                S[i], rho[i], Pxz[i], fewer, d, x[i], P[i], alt_products, x_alt, P_alt, Sm,
+                A, solved, keep,
+            )  # fmt: skip
+            _mixture_row(w, x_post[i], P_post[i], x_alt, P_alt, x_post[i], P_post[i], diff)
+        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
+        lik = count * per_group - 0.5 * (nis + logdet)
+        outliers = 0
+        for g in range(G):
+            if present[i, g] and not row_in[g]:
+                outliers += 1
+                if outlier_probability > 0.0:
+                    for a in range(d):
+                        eye[a, 0] = 0.0
+                        for b in range(d):
+                            block[a, b] = S[i, g * d + a, g * d + b]
+                    logdet_g = _lu_solve(block, eye, work)
+                    lik += (
+                        math.log(outlier_probability) - d * math.log(outlier_scale)
+                        - 0.5 * d2[i, g] / outlier_scale**2 - 0.5 * (logdet_g + d * log_2pi)
+                    )  # fmt: skip
+        log_lik[i] = lik if math.isfinite(lik) else -1e300
+        rejected[i] = outliers
+        usable = ok_sigma[i] and ok_S and count > 0
+        prior_var, post_var = P[i, 0, 0], P_post[i, 0, 0]
+        post_ok = post_var > 0 and math.isfinite(x_post[i, 0])
+        # The frame's information about delta_L (how much it shrank the variance) must
+        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
+        informative = prior_var - post_var > min_information * prior_var * post_var
+        settled = usable and post_ok
+        done[i] = settled and informative
+        uninformative = settled and not informative
+        st = flag_outlier if outliers else 0
+        if not (done[i] or uninformative):
+            st |= flag_held
+        if count > 0 and not (ok_S and post_ok):
+            st |= flag_repaired
+        if uninformative:
+            st |= flag_uninformative | flag_held
+        status[i] = st
+        shown[i] = usable and not uninformative
+        nis_out[i] = nis if shown[i] else math.nan
+        dof[i] = d * count if shown[i] else 0
+    return x_post, P_post, nis_out, dof, log_lik, inlier, status, rejected, done, shown
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
+    for n in (1, 3, 4):
+        x = np.zeros((1, n))
+        P = np.eye(n)[None].copy()
+        ok, L = predict_rows(
+            x, P, np.zeros(1), np.ones(1), np.ones((1, 2)), np.zeros(1), 1 if n > 2 else -1,
+            1 if n == 4 else -1, 0.0, 1.0,
+        )  # fmt: skip
+        cap_rows(P, 1.0)
+        L, ok = sigma_factors(P, 1.0)
+        sigmas, offsets = sigma_rows(x, L, 1.0)
+        W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
+        G = 2
+        c = np.ones((1, G, 3))
+        predict_3d(sigmas, c, np.zeros((1, G, 3, 5)), np.zeros(1), -1, -1, False)
+        S, rho, Pxz, d2, offsets = innovation_3d(
+            x, L, 1.0, c, np.zeros((1, G, 3, 5)), c, np.zeros(1),
+            np.broadcast_to(np.eye(3), (1, G, 3, 3)).copy(), W, W, -1, -1, False,
+        )  # fmt: skip
+        for d in (2, 3):
+            hs = np.zeros((1, 2 * n + 1, G * d))
+            noise = np.broadcast_to(np.eye(d), (1, G, d, d)).copy()
+            S, rho, Pxz, d2 = innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
+            fuse_rows(S, rho, Pxz, np.ones((1, G), dtype=bool), d, x, P)
+            mixture_rows(np.ones(1), x, P, x, P)
+            gate_and_fuse(
+                S, rho, Pxz, d2, np.ones((1, G), dtype=bool), np.ones(1, dtype=bool), x, P, d,
+                0.01, 5.0, 10.0, 5.0, np.full(G + 1, 20.0), 1.0, 1, 2, 4, 8,
+            )  # fmt: skip
+
+
+__all__ = [
+    "cap_rows",
+    "fuse_rows",
+    "gate_and_fuse",
+    "innovation_3d",
+    "innovation_stats",
+    "mixture_rows",
+    "predict_3d",
+    "predict_rows",
+    "sigma_factors",
+    "sigma_rows",
+    "warm_up",
+]
