@@ -1,7 +1,7 @@
-"""The UKF's compiled arithmetic (tracker/estimators/ukf_kernels.py) against the textbook
-formulas written here in plain numpy: the linear predict, the unscented transform of the 3-D
-measurement model, the update with only the inlying groups, the joint-consistency
-exclusion, the doubtful group's mixture and the frame's likelihood."""
+"""The UKF's compiled arithmetic and rules (tracker/estimators/ukf_kernels.py, ukf_rules.py)
+against the textbook formulas written here in plain numpy: the linear predict, the unscented
+transform of the 3-D measurement model, the update with only the inlying groups, the
+joint-consistency exclusion, the doubtful group's mixture and the frame's likelihood."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tracker.estimators import ukf_kernels as K
+from tracker.estimators import ukf_rules as R
 
 RNG_SEED = 3
 
@@ -219,16 +220,18 @@ def test_fuse_uses_only_the_inlying_groups():
     np.testing.assert_allclose(x_post[0], x[0])
 
 
-_FLAGS = (1, 2, 4, 8)  # outlier, held, repaired, uninformative
+# Flag values in ukf_rules.FLAG_ORDER: one bit each.
+_FLAGS = np.array([1 << i for i in range(len(R.FLAG_ORDER))], dtype=np.int64)
+_FLAG = dict(zip(R.FLAG_ORDER, _FLAGS.tolist(), strict=True))
 
 
 def _gate(S, rho, Pxz, d2, x, P, d, p=0.01, k=5.0, threshold=None, doubt=math.inf, gates=None):
     G = d2.shape[1]
     threshold = 2.0 * (math.log((1 - p) / p) + d * math.log(k)) / (1 - k**-2) if threshold is None else threshold
     gates = np.full(G + 1, np.inf) if gates is None else gates
-    return K.gate_and_fuse(
+    return R.gate_and_fuse(
         S, rho, Pxz, d2, np.ones(d2.shape, dtype=bool), np.ones(d2.shape[0], dtype=bool), x,
-        P, d, p, k, threshold, doubt, gates, 1e-6, *_FLAGS,
+        P, d, p, k, threshold, doubt, gates, 1e-6, _FLAGS,
     )  # fmt: skip
 
 
@@ -242,7 +245,8 @@ def test_the_gate_rejects_a_gross_error_and_the_likelihood_counts_it_under_the_t
         S, rho, Pxz, d2, x, P, d, p, k
     )
     assert inlier.tolist() == [[True, False, True]]
-    assert rejected[0] == 1 and status[0] & 1 and done[0] and dof[0] == 6
+    assert rejected[0] == 1 and status[0] == _FLAG["OUTLIER_REJECTED"]
+    assert done[0] and dof[0] == 6
     ex, eP, enis, ld = _reference_update(x[0], P[0], Pxz[0], S[0], rho[0], inlier[0], d)
     np.testing.assert_allclose(x_post[0], ex, rtol=1e-10)
     assert nis[0] == pytest.approx(enis, rel=1e-10)
@@ -311,4 +315,4 @@ def test_an_uninformative_update_is_held_and_not_shown():
     out = _gate(S, rho, Pxz, np.ones((1, G)), x, P, d)
     x_post, _, nis, dof, _, _, status, _, done, shown = out
     assert not done[0] and not shown[0] and math.isnan(nis[0]) and dof[0] == 0
-    assert status[0] == 2 | 8
+    assert status[0] == _FLAG["HELD"] | _FLAG["UNINFORMATIVE"]

@@ -52,7 +52,7 @@ from functools import lru_cache
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from tracker.estimators import ukf_kernels
+from tracker.estimators import ukf_kernels, ukf_rules
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
@@ -61,7 +61,7 @@ from tracker.estimators._linalg import (
     sigma_sqrt,
     spd_inverse,
 )
-from tracker.estimators.deviation import deviation_decay, deviation_prior, quadratic_moments
+from tracker.estimators.deviation import deviation_prior, quadratic_moments
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
@@ -73,7 +73,6 @@ from tracker.estimators.measurement import (
     model_error_covariance,
     offered_velocity,
     outlier_threshold,
-    process_variance,
     trig_table,
     velocity_offered,
     wrap,
@@ -110,6 +109,25 @@ def _no_gates(G: int) -> Array:
 
 
 _F = {name: flag.value for name, flag in Flag.__members__.items()}
+# The flag values the compiled rules set, in their order.
+_FLAGS = np.array([_F[name] for name in ukf_rules.FLAG_ORDER], dtype=np.int64)
+_FLAGS.flags.writeable = False
+_NONE = np.zeros(0, dtype=np.intp)
+# The update of a frame that updates no hypothesis.
+_NO_UPDATE = UpdateResult(
+    b=_NONE, h=_NONE, status=np.zeros(0, dtype=np.int64), nis=np.zeros(0),
+    dof=np.zeros(0, dtype=np.int64), rejected=np.zeros(0, dtype=np.int64),
+    inlier=np.zeros((0, 0), dtype=bool), fused_tip=np.zeros(0, dtype=bool), innovation=None,
+)  # fmt: skip
+
+
+@lru_cache(maxsize=64)
+def _gate_table(probability: float, max_dof: int) -> Array:
+    """The consistency gate of a NIS of k degrees of freedom, k = 0 .. max_dof (k = 0: of 1;
+    read-only, shared)."""
+    table = np.array([gate_threshold(probability, max(k, 1)) for k in range(max_dof + 1)])
+    table.flags.writeable = False
+    return table
 
 
 class FilterBank:
@@ -147,6 +165,7 @@ class FilterBank:
         self._rate_index = -1 if self.rate is None else self.rate
         self._deviation_index = -1 if self.deviation is None else self.deviation
         ukf_kernels.warm_up()
+        ukf_rules.warm_up()
         self.reset(n_trials)
 
     # ------------------------------------------------------------------ state
@@ -170,9 +189,11 @@ class FilterBank:
         # 0 (``_first_only``: then slot 0 of every trial is each one's leading hypothesis).
         # Either may be False when it is true (then the general path runs), never the reverse.
         self._single = self._first_only = True
-        # The predict's Cholesky factors of slot 0 of every trial, reused by the update's
-        # sigma points in the same step (None: factorise there).
-        self._factor = None
+        # The predict's Cholesky factors of every hypothesis (B, H, n, n), reused by the
+        # update's sigma points in the same step where ``_factor_ok`` (B, H).
+        self._factor = np.zeros((B, H, n, n))
+        self._factor_ok = np.zeros((B, H), dtype=bool)
+        self._no_partial = np.zeros(B, dtype=bool)
         self._held_slot = np.zeros(B, dtype=np.intp)
         # Every trial in order, and slot 0 of each: the hypotheses a bank of one marks.
         self._every = np.arange(B)
@@ -217,35 +238,11 @@ class FilterBank:
 
     def leading(self) -> Array:
         """Index of each trial's heaviest hypothesis."""
-        if self._first_only:
-            return np.zeros(self.B, dtype=np.intp)
-        if self._single:
-            return np.argmax(self.active, axis=1)
-        return np.argmax(np.where(self.active, self.log_weight, -np.inf), axis=1)
+        return ukf_rules.leading(self.active, self.log_weight)
 
     def weights(self) -> Array:
         """Normalised weights of the hypotheses (B, H), 0 where inactive."""
         return np.where(self.active, np.exp(self.log_weight - self._log_total()[:, None]), 0.0)
-
-    def moments(self) -> tuple[Array, Array]:
-        """Moment-matched mean (circular) and variance of delta_L per trial (NaN if none)."""
-        if self._first_only:
-            some = self.active[:, 0]
-            return (np.where(some, self.x[:, 0, 0], np.nan),
-                    np.where(some, self.P[:, 0, 0, 0], np.nan))  # fmt: skip
-        if self._single:
-            lead = self.leading()
-            b = self._every
-            some = self.active[b, lead]
-            return (np.where(some, self.x[b, lead, 0], np.nan),
-                    np.where(some, self.P[b, lead, 0, 0], np.nan))  # fmt: skip
-        w = self.weights()
-        angle = self.x[..., 0]
-        mean = np.arctan2(np.sum(w * np.sin(angle), 1), np.sum(w * np.cos(angle), 1))
-        spread = wrap(angle - mean[:, None])
-        var = np.sum(w * (self.P[..., 0, 0] + spread * spread), 1)
-        none = ~self.active.any(axis=1)
-        return np.where(none, np.nan, wrap(mean)), np.where(none, np.nan, var)
 
     def _log_total(self) -> Array:
         lw = np.where(self.active, self.log_weight, -np.inf)
@@ -268,102 +265,50 @@ class FilterBank:
             Trials whose frame lacks part of its data (reported as ``Flag.PARTIAL``).
         """
         s, B = self.settings, self.B
-        q = np.asarray(q, dtype=float)
-        time_s = np.asarray(time_s, dtype=float)
-        known = np.isfinite(self.time_s)
-        # Joint values before the first frame (or after ``initialise``) are unknown: no change.
-        change = np.where(known[:, None] & np.isfinite(self.q), q - self.q, 0.0)
-        dt = np.where(known, time_s - self.time_s, 0.0)
-        turn = change[:, 0]
-        self.time_s, self.q = time_s.copy(), q.copy()
-        Q = process_variance(s.process_noise_rad2_s, s.rotation_noise_gain_rad, dt, turn)
-        if partial is None:
-            flags = np.zeros(B, dtype=np.int64)
-        else:
-            flags = partial * _F["PARTIAL"]
+        running = self.initialised.copy()
+        # The process model of the running trials' hypotheses (ukf_rules.begin_step); the
+        # predicted covariances' factors are kept for the update's sigma points.
+        flags, dt, turn, Q, prior, ok, self._factor = ukf_rules.begin_step(
+            np.ascontiguousarray(time_s, dtype=float), np.ascontiguousarray(q, dtype=float),
+            self.time_s, self.q,
+            self._no_partial if partial is None else np.ascontiguousarray(partial, dtype=bool),
+            self.x, self.P, self.active, running, s.process_noise_rad2_s,
+            s.rotation_noise_gain_rad, s.joint_error_mm, s.gain_error, s.deviation_length_mm,
+            s.deviation_rate_per_s, s.rate_process_noise_rad2_s3, self.max_variance,
+            self._deviation_index, self._rate_index, _FLAGS,
+        )  # fmt: skip
+        self._factor_ok = ok
+        if not ok.all():
+            self._repair(~ok, Q, flags)
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
             nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
             innovation=[None] * B,
         )  # fmt: skip
-        # The deviation's prior at this frame's joint values (the predict and the mismatch).
-        prior = None if self.deviation is None else self.deviation_prior(q)
-        self._factor = None
-        running = self.initialised.copy()
-        # Every trial running (the live filter's usual case): nothing to mask by ``running``.
-        all_running = bool(running.all())
-        if all_running or running.any():
-            moved = np.abs(change[:, 1]) + np.abs(change[:, 2])
-            self._predict(running, all_running, dt, Q, moved, prior, flags)
         fused_tip = np.zeros(B, dtype=bool)
         if frame is None or not frame.present.any():
             flags |= _F["NO_MEASUREMENT"]
             flags |= np.where(running, _F["HELD"], _F["NOT_INITIALISED"])
         else:
             frame = offered_velocity(frame, s, self.tip_fused)
-            self._fuse(frame, running, all_running, Q, dt, turn, flags, out, fused_tip)
+            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip)
         self.tip_fused = fused_tip
-        if self.deviation is not None:
-            k = self.deviation
-            if self._first_only:
-                lead = self.x[:, 0, k : k + 2]
-            else:
-                lead = self.x[self._every, self.leading(), k : k + 2]
-            far = lead * lead > 9.0 * prior
-            flags |= (self.initialised & (far[:, 0] | far[:, 1])) * _F["MODEL_MISMATCH"]
-        mean, var = self.moments()
-        valid = self.initialised & np.isfinite(mean)
-        out.delta_L_rad = np.where(valid, mean, np.nan)
-        out.std_rad = np.sqrt(np.where(valid, var, np.nan))
+        out.delta_L_rad, out.std_rad = ukf_rules.report(
+            self.x, self.P, self.active, self.log_weight, self.initialised, prior,
+            self._deviation_index, flags, _FLAGS,
+        )  # fmt: skip
         out.rejected = self.rejected.copy()
         return out
 
-    # ------------------------------------------------------------------ predict
-    def _predict(
-        self, running: Array, all_running: bool, dt: Array, Q: Array, moved: Array,
-        prior: Array | None, flags: Array,
-    ) -> None:  # fmt: skip
-        """The process model of the active hypotheses of running trials (``all_running``:
-        every trial runs; ``prior``: the deviation's prior variance at the frame's joint
-        values, (B, 2)).
-
-        It is linear (a random walk of delta_L, its rate integrated, the deviation an
-        Ornstein-Uhlenbeck process in the joint travel), so the unscented transform of its
-        sigma points is exactly ``F x``, ``F P F^T + Q`` (delta_L wrapped; the sigma-point
-        spread stays below pi by the std cap): that is what is computed.
-        """
-        s = self.settings
-        b, h, rows = self._marked(self.active if all_running else self.active & running[:, None])
-        if b.size == 0:
-            return
-        if rows is b:
-            x, P = self.x[b, h], self.P[b, h]
-        else:
-            x, P = self.x[:, 0].copy(), self.P[:, 0].copy()
-        if self.deviation is None:
-            decay, prior = dt, _NO_PRIOR
-        else:
-            decay = deviation_decay(
-                moved[rows], s.deviation_length_mm, dt[rows], s.deviation_rate_per_s
-            )
-            prior = prior[rows]
-        ok, factor = ukf_kernels.predict_rows(
-            x, P, Q[rows], decay, prior, dt[rows], self._deviation_index, self._rate_index,
-            s.rate_process_noise_rad2_s3, self.max_variance,
-        )  # fmt: skip
-        if not ok.all():
-            factor = None
-            bad = ~ok
-            gx, gP = self._repaired(self.good_x[b[bad], h[bad]], self.good_P[b[bad], h[bad]])
-            gP[:, 0, 0] += Q[b[bad]]
-            ukf_kernels.cap_rows(gP, self.max_variance)
-            x[bad], P[bad] = gx, gP
-            flags[b[bad]] |= _F["COVARIANCE_REPAIRED"]
-        if rows is b:
-            self.x[b, h], self.P[b, h] = x, P
-        else:
-            self.x[:, 0], self.P[:, 0] = x, P
-            self._factor = factor
+    def _repair(self, bad: Array, Q: Array, flags: Array) -> None:
+        """Predicted hypotheses ``bad`` (B, H) whose covariance is not positive definite (or
+        not finite) take the last good state with a re-initialised covariance."""
+        b, h = np.nonzero(bad)
+        gx, gP = self._repaired(self.good_x[b, h], self.good_P[b, h])
+        gP[:, 0, 0] += Q[b]
+        ukf_kernels.cap_rows(gP, self.max_variance)
+        self.x[b, h], self.P[b, h] = gx, gP
+        flags[b] |= _F["COVARIANCE_REPAIRED"]
 
     def _marked(self, mask: Array) -> tuple[Array, Array, Array | slice]:
         """The hypotheses marked in ``mask`` (B, H) as indices (b, h), and the trial rows to
@@ -387,17 +332,18 @@ class FilterBank:
         return x.copy(), diag[..., None] * np.eye(self.n)
 
     # ------------------------------------------------------------------ fuse
-    def _fuse(self, frame, running, all_running, Q, dt, turn, flags, out, fused_tip) -> None:
+    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:
         s = self.settings
         B = self.B
         present = frame.present
-        check_measurement_covariance(frame.noise(slice(None)), present)
         three_d = isinstance(frame, FrameGroups)
-        # Trials without a usable group in this frame only predict.
-        measured = present.any(axis=1)
-        if not measured.all():
-            flags |= np.where(measured, 0, _F["NO_MEASUREMENT"])
-            flags |= np.where(measured, 0, np.where(running, _F["HELD"], _F["NOT_INITIALISED"]))
+        noise = frame.noise(slice(None))
+        usable, measured, all_wide, updating = ukf_rules.prepare_fuse(
+            np.ascontiguousarray(noise), present, running, self.active, self.P,
+            self.reacquire_variance, flags, _FLAGS,
+        )  # fmt: skip
+        if not usable:
+            check_measurement_covariance(noise, present)  # raises, naming the problem
         scale = self.noise_scale * self.mismatch_scale
         out.radius_mm = frame.radius_mm()
         M = None
@@ -406,68 +352,25 @@ class FilterBank:
             M = model_error_covariance(
                 frame, s.joint_error_white_mm, s.velocity_relative_error, rate_var, dt
             )
-        # Hypotheses too wide to update (the prior carries almost nothing).
-        live = self.active if all_running else self.active & running[:, None]
-        wide = live & (self.P[..., 0, 0] > self.reacquire_variance)
-        all_wide = np.zeros(B, dtype=bool)
-        wide_any = bool(wide.any())
-        if wide_any:
-            narrow = self.active & ~wide
-            self.active &= ~(wide & narrow.any(axis=1)[:, None])
-            all_wide = running & self.active.any(axis=1) & ~narrow.any(axis=1) & measured
-            updating = self.active & ~wide & (running & measured)[:, None]
-        else:
-            updating = live & measured[:, None]
-        spawn = np.zeros(B, dtype=bool)
         marked = self._marked(updating)
-        if marked[0].size:
-            update = self._update(frame, marked, M, scale)
-            # The report follows each trial's leading hypothesis.
-            every = False  # the update's rows are every trial's report, unmasked
-            if update.h is self._slot_0 and self._first_only:
-                # Row i of the update is slot 0 of trial i, its leading hypothesis.
-                row = slice(None)
-                touched = running & ~all_wide if wide_any else running
-                every = all_running and not wide_any
-            else:
-                mine = update.h == self.leading()[update.b]
-                if is_every_trial(update.b, B) and mine.all():
-                    row = slice(None)
-                    touched = running & ~all_wide
-                else:
-                    row = np.full(B, -1)
-                    row[update.b[mine]] = np.flatnonzero(mine)
-                    touched = running & ~all_wide & (row >= 0)
-                    row = np.maximum(row, 0)
-            # Masked by ``touched`` (unless it is every trial: then the masks are identities).
-            st = update.status if every else touched * update.status[row]
-            flags |= st
-            out.nis = update.nis if every else np.where(touched, update.nis[row], np.nan)
-            reported = np.isfinite(out.nis) if every else touched & np.isfinite(out.nis)
-            out.nis_dof = reported * update.dof[row]
-            if B == 1 and touched[0]:
-                out.innovation[0] = update.innovation[0 if isinstance(row, slice) else row[0]]
-            self.rejected += update.rejected if every else touched * update.rejected[row]
-            rejected = (st & _F["OUTLIER_REJECTED"]) != 0
-            held_rejected = _F["OUTLIER_REJECTED"] | _F["HELD"]
-            all_rejected = (st & held_rejected) == held_rejected
-            kept = ~all_rejected if every else touched & ~all_rejected
-            self.bad_run = np.where(kept, 0, self.bad_run)
-            fused_tip |= update.fused_tip if every else touched & update.fused_tip[row]
+        update = self._update(frame, marked, M, scale) if marked[0].size else _NO_UPDATE
+        G, d = present.shape[1], frame.dim
+        low, high = s.noise_scale_bounds
+        # The report follows each trial's leading hypothesis.
+        spawn, first, row = ukf_rules.apply_update(
+            update.b, update.h, update.status, update.nis, update.dof, update.rejected,
+            update.fused_tip, self.active, self.log_weight, running, all_wide, measured,
+            three_d, flags, out.nis, out.nis_dof, self.rejected, self.bad_run, fused_tip,
+            self.noise_scale, s.estimate_noise, _gate_table(s.gate_probability, G * d),
+            s.noise_forgetting, low, high, _FLAGS,
+        )  # fmt: skip
+        if B == 1 and row[0] >= 0:
+            out.innovation[0] = update.innovation[row[0]]
+        if three_d and (first.any() or all_wide.any() or spawn.any()):
             # Data the leading hypothesis does not explain, in part or as a whole: weigh a
             # hypothesis started from the frame alone against it.
-            spawn = rejected & three_d
-            if s.estimate_noise:
-                self._adapt_noise(touched, out.nis, out.nis_dof)
-        if three_d:
-            first = ~running & measured
-            if (first | all_wide | spawn).any():
-                jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
-                self._closed_form(frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip)
-        else:
-            # A single view leaves a mirror ambiguity: it updates a filter, never starts one.
-            flags |= np.where(~running & measured, _F["NOT_INITIALISED"] | _F["UNINFORMATIVE"], 0)
-            flags |= np.where(all_wide, _F["UNINFORMATIVE"] | _F["HELD"], 0)
+            jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
+            self._closed_form(frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip)
         self._normalise()
 
     def _closed_form(self, frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip):
@@ -584,10 +487,8 @@ class FilterBank:
         self._set(b, slot, fit.delta_L_rad[chosen][take], std[chosen][take], None)
 
     def _normalise(self) -> None:
-        self._first_only = self.H == 1 or not self.active[:, 1:].any()
-        self._single = self._first_only or bool((self.active.sum(axis=1) <= 1).all())
+        self._first_only, self._single = ukf_rules.normalise_single(self.active, self.log_weight)
         if self._single:
-            self.log_weight = np.where(self.active, 0.0, -np.inf)
             return
         if self._merge_agreeing():
             self._normalise()
@@ -611,19 +512,6 @@ class FilterBank:
             self.good_x[merged], self.good_P[merged] = self.x[merged], self.P[merged]
         return bool(merged.any())
 
-    def _adapt_noise(self, trials: Array, nis: Array, dof: Array) -> None:
-        s = self.settings
-        ok = trials & np.isfinite(nis) & (dof > 0)
-        if not ok.any():
-            return
-        d = np.maximum(dof, 1)
-        gate = np.array([gate_threshold(s.gate_probability, int(k)) for k in d])
-        ratio = np.minimum(np.minimum(nis, gate), 10.0 * d) / d
-        lam = s.noise_forgetting
-        low, high = s.noise_scale_bounds
-        new = np.clip(self.noise_scale * (lam + (1 - lam) * np.nan_to_num(ratio)), low, high)
-        self.noise_scale = np.where(ok, new, self.noise_scale)
-
     # ------------------------------------------------------------------ update
     def _update(self, frame, marked: tuple, M: Array | None, scale: Array) -> UpdateResult:
         """filterpy's UKF update of the ``marked`` hypotheses (:meth:`_marked`), with a gate
@@ -643,10 +531,14 @@ class FilterBank:
         G, d = frame.present.shape[1], frame.dim
         if rows is b:
             x, P = self.x[b, h], self.P[b, h]
+            fresh = bool(self._factor_ok[b, h].all())
+            factor = self._factor[b, h] if fresh else None
         else:
             # Slot 0 (views when it is the only one): read only until the write-back.
             x, P = np.ascontiguousarray(self.x[:, 0]), np.ascontiguousarray(self.P[:, 0])
-        factor = None if rows is b else self._factor
+            fresh = bool(self._factor_ok[:, 0].all())
+            factor = np.ascontiguousarray(self._factor[:, 0]) if fresh else None
+        # The predict's factors where every updated hypothesis has one, else factorise.
         if factor is None:
             factor, ok_sigma = ukf_kernels.sigma_factors(P, self.spread)
         else:
@@ -666,10 +558,9 @@ class FilterBank:
         else:
             gates = _no_gates(G)
         x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
-            ukf_kernels.gate_and_fuse(
+            ukf_rules.gate_and_fuse(
                 S, rho, Pxz, d2, present, ok_sigma, x, P, d, p, k, threshold,
-                doubt_threshold(d, p, k), gates, self.min_information, _F["OUTLIER_REJECTED"],
-                _F["HELD"], _F["COVARIANCE_REPAIRED"], _F["UNINFORMATIVE"],
+                doubt_threshold(d, p, k), gates, self.min_information, _FLAGS,
             )
         )  # fmt: skip
         if rows is not b and done.all():

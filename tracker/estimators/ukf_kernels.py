@@ -129,9 +129,63 @@ def cap_rows(P, max_variance):
 
 
 @numba.njit(cache=True, nogil=True)
+def _predict_row(x, P, Q, decay, prior_p, prior_d, dt, deviation, rate, rate_noise,
+                 max_variance, L, work):  # fmt: skip
+    """One hypothesis of :func:`predict_rows` (x (n,), P (n, n) in place, L its factor)."""
+    n = x.shape[0]
+    P[0, 0] += Q
+    if deviation >= 0:
+        k = deviation
+        for j in (k, k + 1):
+            x[j] *= decay
+            for c in range(n):
+                P[j, c] *= decay
+            for c in range(n):
+                P[c, j] *= decay
+        fresh = 1.0 - decay * decay
+        P[k, k] += fresh * prior_p
+        P[k + 1, k + 1] += fresh * prior_d
+    if rate >= 0:
+        j = rate
+        x[0] += dt * x[j]
+        for c in range(n):
+            P[0, c] += dt * P[j, c]
+        for c in range(n):
+            P[c, 0] += dt * P[c, j]
+        P[0, 0] += rate_noise * dt**3 / 3.0
+        P[0, j] += rate_noise * dt**2 / 2.0
+        P[j, 0] += rate_noise * dt**2 / 2.0
+        P[j, j] += rate_noise * dt
+    x[0] = _wrap(x[0])
+    good = P[0, 0] > 0.0
+    for a in range(n):
+        good = good and math.isfinite(x[a])
+        for c in range(n):
+            good = good and math.isfinite(P[a, c])
+    if not good:
+        return False
+    if P[0, 0] > max_variance:
+        f = math.sqrt(max_variance / P[0, 0])
+        for c in range(n):
+            P[0, c] *= f
+        for c in range(n):
+            P[c, 0] *= f
+    if n == 1:
+        L[0, 0] = math.sqrt(P[0, 0])
+        return True
+    return _cholesky_jittered(P, L, work)
+
+
+@numba.njit(cache=True, nogil=True)
 def predict_rows(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_variance):
     """The process model of r hypotheses in place, and the Cholesky factors of their
     predicted covariances.
+
+    It is linear: a random walk of delta_L (variance ``Q`` over the interval), the torsion
+    rate integrated (a random walk of intensity ``rate_noise``), the deviation an
+    Ornstein-Uhlenbeck process (correlation ``decay`` over the interval, stationary variance
+    ``prior``); delta_L is wrapped and its variance capped at ``max_variance`` (row and
+    column 0 scaled: the correlations are kept).
 
     Parameters
     ----------
@@ -140,11 +194,9 @@ def predict_rows(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_var
     Q : array (r,)
         Variance of the torsion change over the interval, rad^2.
     decay : array (r,)
-        The deviation's correlation over the interval (:func:`~tracker.estimators.
-        deviation.deviation_decay`); unused without a deviation.
+        The deviation's correlation over the interval (unused without a deviation).
     prior : array (r, 2)
-        The deviation's prior variance at the frame's joints, mm^2 (its fresh part is
-        ``(1 - decay^2) prior``).
+        The deviation's prior variance at the frame's joints, mm^2.
     dt : array (r,)
         Frame interval, s (the rate's integration).
     deviation, rate : int
@@ -166,50 +218,10 @@ def predict_rows(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_var
     L = np.zeros((r, n, n))
     work = np.empty((n, n))
     for i in range(r):
-        Pi = P[i]
-        Pi[0, 0] += Q[i]
-        if deviation >= 0:
-            a = decay[i]
-            k = deviation
-            for j in (k, k + 1):
-                x[i, j] *= a
-                for c in range(n):
-                    Pi[j, c] *= a
-                for c in range(n):
-                    Pi[c, j] *= a
-            fresh = 1.0 - a * a
-            Pi[k, k] += fresh * prior[i, 0]
-            Pi[k + 1, k + 1] += fresh * prior[i, 1]
-        if rate >= 0:
-            j, step = rate, dt[i]
-            x[i, 0] += step * x[i, j]
-            for c in range(n):
-                Pi[0, c] += step * Pi[j, c]
-            for c in range(n):
-                Pi[c, 0] += step * Pi[c, j]
-            Pi[0, 0] += rate_noise * step**3 / 3.0
-            Pi[0, j] += rate_noise * step**2 / 2.0
-            Pi[j, 0] += rate_noise * step**2 / 2.0
-            Pi[j, j] += rate_noise * step
-        x[i, 0] = _wrap(x[i, 0])
-        good = Pi[0, 0] > 0.0
-        for a_ in range(n):
-            good = good and math.isfinite(x[i, a_])
-            for c in range(n):
-                good = good and math.isfinite(Pi[a_, c])
-        if not good:
-            continue
-        if Pi[0, 0] > max_variance:
-            f = math.sqrt(max_variance / Pi[0, 0])
-            for c in range(n):
-                Pi[0, c] *= f
-            for c in range(n):
-                Pi[c, 0] *= f
-        if n == 1:
-            L[i, 0, 0] = math.sqrt(Pi[0, 0])
-            ok[i] = True
-        else:
-            ok[i] = _cholesky_jittered(Pi, L[i], work)
+        ok[i] = _predict_row(
+            x[i], P[i], Q[i], decay[i], prior[i, 0], prior[i, 1], dt[i], deviation, rate,
+            rate_noise, max_variance, L[i], work,
+        )  # fmt: skip
     return ok, L
 
 
@@ -515,48 +527,10 @@ def fuse_rows(S, rho, Pxz, inlier, d, x, P):
     solved = np.empty((n + 1, m))
     keep = np.empty(m, dtype=np.bool_)
     for i in range(r):
-        for j in range(m):
-            keep[j] = inlier[i, j // d]
-        for a in range(m):
-            for b in range(m):
-                if keep[a] and keep[b]:
-                    Sm[a, b] = S[i, a, b]
-                elif a == b:
-                    Sm[a, b] = 1.0
-                else:
-                    Sm[a, b] = 0.0
-        for j in range(m):
-            for a in range(n):
-                A[a, j] = Pxz[i, a, j] if keep[j] else 0.0
-            A[n, j] = rho[i, j] if keep[j] else 0.0
-        if _cholesky_into(Sm, Sm):
-            ok[i] = True
-            t = 0.0
-            for j in range(m):
-                t += math.log(Sm[j, j])
-            logdet[i] = 2.0 * t
-            for a in range(n + 1):
-                for j in range(m):
-                    solved[a, j] = A[a, j]
-                _solve_lower(Sm, solved[a])
-            for a in range(n + 1):
-                for b in range(a, n + 1):
-                    t = 0.0
-                    for j in range(m):
-                        t += A[a, j] * solved[b, j]
-                    products[i, a, b] = t
-                    products[i, b, a] = t
-        for a in range(n):
-            x_post[i, a] = x[i, a] + products[i, a, n]
-        x_post[i, 0] = _wrap(x_post[i, 0])
-        for a in range(n):
-            for b in range(n):
-                P_post[i, a, b] = P[i, a, b] - products[i, a, b]
-        for a in range(n):
-            for b in range(a + 1, n):
-                t = 0.5 * (P_post[i, a, b] + P_post[i, b, a])
-                P_post[i, a, b] = t
-                P_post[i, b, a] = t
+        logdet[i], ok[i] = _fuse_row(
+            S[i], rho[i], Pxz[i], inlier[i], d, x[i], P[i], products[i], x_post[i], P_post[i],
+            Sm, A, solved, keep,
+        )  # fmt: skip
     return products, logdet, ok, x_post, P_post
 
 
@@ -615,98 +589,6 @@ def _fuse_row(S, rho, Pxz, inlier, d, x, P, products, x_post, P_post, Sm, A, sol
 
 
 @numba.njit(cache=True, nogil=True)
-def _lu_solve(A, b, work):
-    """Solve A x = b in place (b (m,) or (m, k)) by Gaussian elimination with partial
-    pivoting on a copy ``work`` of A; log |det A| (-inf if singular)."""
-    m = A.shape[0]
-    for i in range(m):
-        for j in range(m):
-            work[i, j] = A[i, j]
-    logdet = 0.0
-    for col in range(m):
-        pivot = col
-        for i in range(col + 1, m):
-            if abs(work[i, col]) > abs(work[pivot, col]):
-                pivot = i
-        if work[pivot, col] == 0.0:
-            return -math.inf
-        if pivot != col:
-            for j in range(m):
-                work[col, j], work[pivot, j] = work[pivot, j], work[col, j]
-            for j in range(b.shape[1]):
-                b[col, j], b[pivot, j] = b[pivot, j], b[col, j]
-        logdet += math.log(abs(work[col, col]))
-        for i in range(col + 1, m):
-            f = work[i, col] / work[col, col]
-            for j in range(col, m):
-                work[i, j] -= f * work[col, j]
-            for j in range(b.shape[1]):
-                b[i, j] -= f * b[col, j]
-    for col in range(m - 1, -1, -1):
-        for j in range(b.shape[1]):
-            t = b[col, j]
-            for k in range(col + 1, m):
-                t -= work[col, k] * b[k, j]
-            b[col, j] = t / work[col, col]
-    return logdet
-
-
-@numba.njit(cache=True, nogil=True)
-def _exclude_inconsistent(S, rho, inlier, d, threshold):
-    """Inlying groups whose residual *given the other inlying groups* exceeds the group
-    threshold, left out one at a time (the worst first) while two remain (in place).
-
-    The residual of group g given the others is Gaussian with covariance
-    ``((S^-1)_gg)^-1`` and mean zero under the model; its squared Mahalanobis length is
-    ``e_g^T ((S^-1)_gg)^-1 e_g`` with ``e = S^-1 rho``: how much the joint NIS drops when g
-    is left out."""
-    m = rho.shape[0]
-    G = m // d
-    Sm = np.empty((m, m))
-    inverse = np.empty((m, m))
-    work = np.empty((m, m))
-    block = np.empty((d, d))
-    rhs = np.empty((d, 1))
-    small = np.empty((d, d))
-    while True:
-        for a in range(m):
-            for b in range(m):
-                both = inlier[a // d] and inlier[b // d]
-                Sm[a, b] = S[a, b] if both else (1.0 if a == b else 0.0)
-                inverse[a, b] = 1.0 if a == b else 0.0
-        if _lu_solve(Sm, inverse, work) == -math.inf:
-            return
-        worst, largest = -1, -math.inf
-        for g in range(G):
-            if not inlier[g]:
-                continue
-            for a in range(d):
-                t = 0.0
-                for j in range(m):
-                    if inlier[j // d]:
-                        t += inverse[g * d + a, j] * rho[j]
-                rhs[a, 0] = t
-                for b in range(d):
-                    block[a, b] = inverse[g * d + a, g * d + b]
-            e = rhs.copy()
-            if _lu_solve(block, rhs, small) == -math.inf:
-                continue
-            given = 0.0
-            for a in range(d):
-                given += e[a, 0] * rhs[a, 0]
-            if given > largest:
-                worst, largest = g, given
-        if worst < 0 or not largest > threshold:
-            return
-        inlier[worst] = False
-        count = 0
-        for g in range(G):
-            count += inlier[g]
-        if count < 2:
-            return
-
-
-@numba.njit(cache=True, nogil=True)
 def _mixture_row(w, x1, P1, x2, P2, x, P, diff):
     """Mean x and covariance P (may be x1, P1) of ``w N(x1, P1) + (1 - w) N(x2, P2)``, the
     first component an angle (the two close enough for a linear mean)."""
@@ -736,179 +618,6 @@ def mixture_rows(w, x1, P1, x2, P2):
     return x, P
 
 
-@numba.njit(cache=True, nogil=True)
-def gate_and_fuse(
-    S, rho, Pxz, d2, present, ok_sigma, x, P, d, outlier_probability, outlier_scale,
-    threshold, doubt, gates, min_information, flag_outlier, flag_held, flag_repaired,
-    flag_uninformative,
-):  # fmt: skip
-    """The update's rules for r hypotheses, given their innovation statistics (docs/design.md,
-    "Joint consistency and doubtful groups").
-
-    Per hypothesis: a group is an inlier when present and its squared residual ``d2`` is
-    within ``threshold`` (where its posterior probability of being a gross error is one
-    half); the inliers are fused in one solve. When two or more inliers pass alone but their
-    joint NIS exceeds ``gates[count]`` (its chi-square gate), the group least consistent
-    with the others is left out, one at a time (:func:`_exclude_inconsistent`). Inliers
-    beyond ``doubt`` (a gross error with probability above ``DOUBT_PROBABILITY``) are doubtful:
-    the posterior is the moment-matched mixture of the update with them (weight: the product
-    of their inlier probabilities) and the update without them. The frame's log-likelihood
-    under the hypothesis counts the inliers as Gaussian and the rejected groups under the
-    heavy tail.
-
-    Parameters
-    ----------
-    S, rho, Pxz, d2 : arrays
-        From :func:`innovation_stats` or :func:`innovation_3d`.
-    present : bool array (r, G)
-    ok_sigma : bool array (r,)
-        Whether the sigma points' factorisation succeeded.
-    x, P : arrays (r, n), (r, n, n)
-        The priors.
-    d : int
-        Dimension of a group.
-    outlier_probability, outlier_scale : float
-        The heavy-tailed component: its probability and its widening.
-    threshold, doubt : float
-        Squared residuals of the gate and of doubt (inf: none).
-    gates : array (G + 1,)
-        The joint NIS gate of k inlying groups (inf: no consistency check).
-    min_information : float
-        Least information about delta_L (1/rad^2) for an update to count.
-    flag_* : int
-        The values of ``Flag.OUTLIER_REJECTED``, ``HELD``, ``COVARIANCE_REPAIRED`` and
-        ``UNINFORMATIVE``.
-
-    Returns
-    -------
-    x_post, P_post : arrays (r, n), (r, n, n)
-    nis : array (r,)
-        The NIS of the inliers (NaN where the update is not shown: unusable or
-        uninformative).
-    dof : int array (r,)
-        Its degrees of freedom (0 where not shown).
-    log_lik : array (r,)
-        The frame's log-likelihood under each hypothesis (-1e300 where not finite).
-    inlier : bool array (r, G)
-    status : int array (r,)
-        Flags of the update.
-    rejected : int array (r,)
-        Groups rejected as gross errors.
-    done : bool array (r,)
-        Whether the posterior replaces the prior.
-    innovation_shown : bool array (r,)
-        Whether the update is shown (usable and informative).
-    """
-    r, m = rho.shape
-    n = x.shape[1]
-    G = m // d
-    x_post = np.empty((r, n))
-    P_post = np.empty((r, n, n))
-    nis_out = np.empty(r)
-    dof = np.zeros(r, dtype=np.int64)
-    log_lik = np.empty(r)
-    inlier = np.zeros((r, G), dtype=np.bool_)
-    status = np.zeros(r, dtype=np.int64)
-    rejected = np.zeros(r, dtype=np.int64)
-    done = np.zeros(r, dtype=np.bool_)
-    shown = np.zeros(r, dtype=np.bool_)
-    products = np.empty((n + 1, n + 1))
-    alt_products = np.empty((n + 1, n + 1))
-    x_alt = np.empty(n)
-    P_alt = np.empty((n, n))
-    diff = np.empty(n)
-    Sm = np.empty((m, m))
-    A = np.empty((n + 1, m))
-    solved = np.empty((n + 1, m))
-    keep = np.empty(m, dtype=np.bool_)
-    fewer = np.empty(G, dtype=np.bool_)
-    block = np.empty((d, d))
-    work = np.empty((d, d))
-    eye = np.empty((d, 1))
-    log_2pi = math.log(2.0 * math.pi)
-    per_group = math.log1p(-outlier_probability) - 0.5 * d * log_2pi
-    for i in range(r):
-        row_in = inlier[i]
-        for g in range(G):
-            row_in[g] = present[i, g] and d2[i, g] <= threshold
-        logdet, ok_S = _fuse_row(
-            S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i], P_post[i],
-            Sm, A, solved, keep,
-        )  # fmt: skip
-        count = 0
-        for g in range(G):
-            count += row_in[g]
-        if count >= 2 and products[n, n] > gates[count]:
-            _exclude_inconsistent(S[i], rho[i], row_in, d, threshold)
-            logdet, ok_S = _fuse_row(
-                S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i],
-                P_post[i], Sm, A, solved, keep,
-            )  # fmt: skip
-        count = 0
-        for g in range(G):
-            count += row_in[g]
-        nis = products[n, n]
-        # A doubtful inlier: the mixture of the update with it and the update without it.
-        w = 1.0
-        any_doubt = False
-        for g in range(G):
-            fewer[g] = row_in[g]
-            if row_in[g] and d2[i, g] > doubt:
-                any_doubt = True
-                fewer[g] = False
-                log_ratio = (
-                    math.log(outlier_probability / (1.0 - outlier_probability))
-                    - d * math.log(outlier_scale)
-                    + 0.5 * (1.0 - outlier_scale**-2) * min(d2[i, g], 1e4)
-                )
-                w *= 1.0 / (1.0 + math.exp(min(log_ratio, 700.0)))
-        if any_doubt:
-            _fuse_row(
-                S[i], rho[i], Pxz[i], fewer, d, x[i], P[i], alt_products, x_alt, P_alt, Sm,
-                A, solved, keep,
-            )  # fmt: skip
-            _mixture_row(w, x_post[i], P_post[i], x_alt, P_alt, x_post[i], P_post[i], diff)
-        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
-        lik = count * per_group - 0.5 * (nis + logdet)
-        outliers = 0
-        for g in range(G):
-            if present[i, g] and not row_in[g]:
-                outliers += 1
-                if outlier_probability > 0.0:
-                    for a in range(d):
-                        eye[a, 0] = 0.0
-                        for b in range(d):
-                            block[a, b] = S[i, g * d + a, g * d + b]
-                    logdet_g = _lu_solve(block, eye, work)
-                    lik += (
-                        math.log(outlier_probability) - d * math.log(outlier_scale)
-                        - 0.5 * d2[i, g] / outlier_scale**2 - 0.5 * (logdet_g + d * log_2pi)
-                    )  # fmt: skip
-        log_lik[i] = lik if math.isfinite(lik) else -1e300
-        rejected[i] = outliers
-        usable = ok_sigma[i] and ok_S and count > 0
-        prior_var, post_var = P[i, 0, 0], P_post[i, 0, 0]
-        post_ok = post_var > 0 and math.isfinite(x_post[i, 0])
-        # The frame's information about delta_L (how much it shrank the variance) must
-        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
-        informative = prior_var - post_var > min_information * prior_var * post_var
-        settled = usable and post_ok
-        done[i] = settled and informative
-        uninformative = settled and not informative
-        st = flag_outlier if outliers else 0
-        if not (done[i] or uninformative):
-            st |= flag_held
-        if count > 0 and not (ok_S and post_ok):
-            st |= flag_repaired
-        if uninformative:
-            st |= flag_uninformative | flag_held
-        status[i] = st
-        shown[i] = usable and not uninformative
-        nis_out[i] = nis if shown[i] else math.nan
-        dof[i] = d * count if shown[i] else 0
-    return x_post, P_post, nis_out, dof, log_lik, inlier, status, rejected, done, shown
-
-
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
     for n in (1, 3, 4):
@@ -935,16 +644,11 @@ def warm_up() -> None:
             S, rho, Pxz, d2 = innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
             fuse_rows(S, rho, Pxz, np.ones((1, G), dtype=bool), d, x, P)
             mixture_rows(np.ones(1), x, P, x, P)
-            gate_and_fuse(
-                S, rho, Pxz, d2, np.ones((1, G), dtype=bool), np.ones(1, dtype=bool), x, P, d,
-                0.01, 5.0, 10.0, 5.0, np.full(G + 1, 20.0), 1.0, 1, 2, 4, 8,
-            )  # fmt: skip
 
 
 __all__ = [
     "cap_rows",
     "fuse_rows",
-    "gate_and_fuse",
     "innovation_3d",
     "innovation_stats",
     "mixture_rows",

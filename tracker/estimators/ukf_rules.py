@@ -1,0 +1,654 @@
+"""The rules of the bending-plane UKF, compiled (numba): what
+:class:`~tracker.estimators.ukf_core.FilterBank` does to each of its B filters and their
+hypotheses in one frame, written once for the live filter (B = 1) and the trial-batched
+studies (docs/design.md, "The UKF" and "Joint consistency and doubtful groups").
+
+A step is a few calls, each one loop over the trials and their hypotheses:
+
+- :func:`begin_step`: the frame interval, the base turn and the joint travel, the process
+  noise and the deviation's prior, and the predict of every active hypothesis of every
+  running trial (:func:`~tracker.estimators.ukf_kernels.predict_rows`' arithmetic);
+- :func:`prepare_fuse`: the usability of the frame's noise, which trials measured anything,
+  the hypotheses too wide to update (dropped beside a narrow one; a trial left with only
+  wide ones restarts from the frame), and which hypotheses are updated;
+- :func:`gate_and_fuse`: the update's rules per hypothesis given its innovation statistics
+  (:mod:`tracker.estimators.ukf_kernels`): gate, joint consistency, doubtful mixture,
+  likelihood, status;
+- :func:`apply_update`: each trial's report from its leading hypothesis' update, the
+  rejected groups, the run of rejected frames, the restart candidates and the adaptive
+  noise scale;
+- :func:`normalise_single` and :func:`report`: the hypotheses' weights where a trial has only
+  one, the model-mismatch flag and the moment-matched estimate.
+
+What happens rarely stays in Python (:mod:`tracker.estimators.ukf_core`): a covariance
+repair, the closed-form start and restart of a filter, the weights and merging of several
+hypotheses. Flag values are passed in as integers (``_flag_values``), in the order of
+``FLAG_ORDER``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from tracker.estimators.ukf_kernels import _fuse_row, _mixture_row, _predict_row, _wrap
+
+# The flags the kernels set, in the order of the ``flags`` array they are given.
+FLAG_ORDER = (
+    "PARTIAL", "NO_MEASUREMENT", "HELD", "NOT_INITIALISED", "OUTLIER_REJECTED",
+    "COVARIANCE_REPAIRED", "UNINFORMATIVE", "MODEL_MISMATCH",
+)  # fmt: skip
+_PARTIAL, _NO_MEASUREMENT, _HELD, _NOT_INITIALISED, _OUTLIER, _REPAIRED, _UNINFORMATIVE = range(7)
+_MISMATCH = 7
+
+
+@numba.njit(cache=True, nogil=True)
+def _lu_solve(A, b, work):
+    """Solve A x = b in place (b (m,) or (m, k)) by Gaussian elimination with partial
+    pivoting on a copy ``work`` of A; log |det A| (-inf if singular)."""
+    m = A.shape[0]
+    for i in range(m):
+        for j in range(m):
+            work[i, j] = A[i, j]
+    logdet = 0.0
+    for col in range(m):
+        pivot = col
+        for i in range(col + 1, m):
+            if abs(work[i, col]) > abs(work[pivot, col]):
+                pivot = i
+        if work[pivot, col] == 0.0:
+            return -math.inf
+        if pivot != col:
+            for j in range(m):
+                work[col, j], work[pivot, j] = work[pivot, j], work[col, j]
+            for j in range(b.shape[1]):
+                b[col, j], b[pivot, j] = b[pivot, j], b[col, j]
+        logdet += math.log(abs(work[col, col]))
+        for i in range(col + 1, m):
+            f = work[i, col] / work[col, col]
+            for j in range(col, m):
+                work[i, j] -= f * work[col, j]
+            for j in range(b.shape[1]):
+                b[i, j] -= f * b[col, j]
+    for col in range(m - 1, -1, -1):
+        for j in range(b.shape[1]):
+            t = b[col, j]
+            for k in range(col + 1, m):
+                t -= work[col, k] * b[k, j]
+            b[col, j] = t / work[col, col]
+    return logdet
+
+
+@numba.njit(cache=True, nogil=True)
+def _exclude_inconsistent(S, rho, inlier, d, threshold):
+    """Inlying groups whose residual *given the other inlying groups* exceeds the group
+    threshold, left out one at a time (the worst first) while two remain (in place).
+
+    The residual of group g given the others is Gaussian with covariance
+    ``((S^-1)_gg)^-1`` and mean zero under the model; its squared Mahalanobis length is
+    ``e_g^T ((S^-1)_gg)^-1 e_g`` with ``e = S^-1 rho``: how much the joint NIS drops when g
+    is left out."""
+    m = rho.shape[0]
+    G = m // d
+    Sm = np.empty((m, m))
+    inverse = np.empty((m, m))
+    work = np.empty((m, m))
+    block = np.empty((d, d))
+    rhs = np.empty((d, 1))
+    small = np.empty((d, d))
+    while True:
+        for a in range(m):
+            for b in range(m):
+                both = inlier[a // d] and inlier[b // d]
+                Sm[a, b] = S[a, b] if both else (1.0 if a == b else 0.0)
+                inverse[a, b] = 1.0 if a == b else 0.0
+        if _lu_solve(Sm, inverse, work) == -math.inf:
+            return
+        worst, largest = -1, -math.inf
+        for g in range(G):
+            if not inlier[g]:
+                continue
+            for a in range(d):
+                t = 0.0
+                for j in range(m):
+                    if inlier[j // d]:
+                        t += inverse[g * d + a, j] * rho[j]
+                rhs[a, 0] = t
+                for b in range(d):
+                    block[a, b] = inverse[g * d + a, g * d + b]
+            e = rhs.copy()
+            if _lu_solve(block, rhs, small) == -math.inf:
+                continue
+            given = 0.0
+            for a in range(d):
+                given += e[a, 0] * rhs[a, 0]
+            if given > largest:
+                worst, largest = g, given
+        if worst < 0 or not largest > threshold:
+            return
+        inlier[worst] = False
+        count = 0
+        for g in range(G):
+            count += inlier[g]
+        if count < 2:
+            return
+
+
+@numba.njit(cache=True, nogil=True)
+def gate_and_fuse(
+    S, rho, Pxz, d2, present, ok_sigma, x, P, d, outlier_probability, outlier_scale,
+    threshold, doubt, gates, min_information, flag,
+):  # fmt: skip
+    """The update's rules for r hypotheses, given their innovation statistics (docs/design.md,
+    "Joint consistency and doubtful groups").
+
+    Per hypothesis: a group is an inlier when present and its squared residual ``d2`` is
+    within ``threshold`` (where its posterior probability of being a gross error is one
+    half); the inliers are fused in one solve. When two or more inliers pass alone but their
+    joint NIS exceeds ``gates[count]`` (its chi-square gate), the group least consistent
+    with the others is left out, one at a time (:func:`_exclude_inconsistent`). Inliers
+    beyond ``doubt`` (a gross error with probability above ``DOUBT_PROBABILITY``) are doubtful:
+    the posterior is the moment-matched mixture of the update with them (weight: the product
+    of their inlier probabilities) and the update without them. The frame's log-likelihood
+    under the hypothesis counts the inliers as Gaussian and the rejected groups under the
+    heavy tail.
+
+    Parameters
+    ----------
+    S, rho, Pxz, d2 : arrays
+        From :func:`innovation_stats` or :func:`innovation_3d`.
+    present : bool array (r, G)
+    ok_sigma : bool array (r,)
+        Whether the sigma points' factorisation succeeded.
+    x, P : arrays (r, n), (r, n, n)
+        The priors.
+    d : int
+        Dimension of a group.
+    outlier_probability, outlier_scale : float
+        The heavy-tailed component: its probability and its widening.
+    threshold, doubt : float
+        Squared residuals of the gate and of doubt (inf: none).
+    gates : array (G + 1,)
+        The joint NIS gate of k inlying groups (inf: no consistency check).
+    min_information : float
+        Least information about delta_L (1/rad^2) for an update to count.
+    flag : int array
+        Flag values in the order of ``FLAG_ORDER``.
+
+    Returns
+    -------
+    x_post, P_post : arrays (r, n), (r, n, n)
+    nis : array (r,)
+        The NIS of the inliers (NaN where the update is not shown: unusable or
+        uninformative).
+    dof : int array (r,)
+        Its degrees of freedom (0 where not shown).
+    log_lik : array (r,)
+        The frame's log-likelihood under each hypothesis (-1e300 where not finite).
+    inlier : bool array (r, G)
+    status : int array (r,)
+        Flags of the update.
+    rejected : int array (r,)
+        Groups rejected as gross errors.
+    done : bool array (r,)
+        Whether the posterior replaces the prior.
+    innovation_shown : bool array (r,)
+        Whether the update is shown (usable and informative).
+    """
+    r, m = rho.shape
+    n = x.shape[1]
+    G = m // d
+    x_post = np.empty((r, n))
+    P_post = np.empty((r, n, n))
+    nis_out = np.empty(r)
+    dof = np.zeros(r, dtype=np.int64)
+    log_lik = np.empty(r)
+    inlier = np.zeros((r, G), dtype=np.bool_)
+    status = np.zeros(r, dtype=np.int64)
+    rejected = np.zeros(r, dtype=np.int64)
+    done = np.zeros(r, dtype=np.bool_)
+    shown = np.zeros(r, dtype=np.bool_)
+    products = np.empty((n + 1, n + 1))
+    alt_products = np.empty((n + 1, n + 1))
+    x_alt = np.empty(n)
+    P_alt = np.empty((n, n))
+    diff = np.empty(n)
+    Sm = np.empty((m, m))
+    A = np.empty((n + 1, m))
+    solved = np.empty((n + 1, m))
+    keep = np.empty(m, dtype=np.bool_)
+    fewer = np.empty(G, dtype=np.bool_)
+    block = np.empty((d, d))
+    work = np.empty((d, d))
+    eye = np.empty((d, 1))
+    log_2pi = math.log(2.0 * math.pi)
+    per_group = math.log1p(-outlier_probability) - 0.5 * d * log_2pi
+    flag_outlier, flag_held = flag[_OUTLIER], flag[_HELD]
+    flag_repaired, flag_uninformative = flag[_REPAIRED], flag[_UNINFORMATIVE]
+    for i in range(r):
+        row_in = inlier[i]
+        for g in range(G):
+            row_in[g] = present[i, g] and d2[i, g] <= threshold
+        logdet, ok_S = _fuse_row(
+            S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i], P_post[i],
+            Sm, A, solved, keep,
+        )  # fmt: skip
+        count = 0
+        for g in range(G):
+            count += row_in[g]
+        if count >= 2 and products[n, n] > gates[count]:
+            _exclude_inconsistent(S[i], rho[i], row_in, d, threshold)
+            logdet, ok_S = _fuse_row(
+                S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i],
+                P_post[i], Sm, A, solved, keep,
+            )  # fmt: skip
+        count = 0
+        for g in range(G):
+            count += row_in[g]
+        nis = products[n, n]
+        # A doubtful inlier: the mixture of the update with it and the update without it.
+        w = 1.0
+        any_doubt = False
+        for g in range(G):
+            fewer[g] = row_in[g]
+            if row_in[g] and d2[i, g] > doubt:
+                any_doubt = True
+                fewer[g] = False
+                log_ratio = (
+                    math.log(outlier_probability / (1.0 - outlier_probability))
+                    - d * math.log(outlier_scale)
+                    + 0.5 * (1.0 - outlier_scale**-2) * min(d2[i, g], 1e4)
+                )
+                w *= 1.0 / (1.0 + math.exp(min(log_ratio, 700.0)))
+        if any_doubt:
+            _fuse_row(
+                S[i], rho[i], Pxz[i], fewer, d, x[i], P[i], alt_products, x_alt, P_alt, Sm,
+                A, solved, keep,
+            )  # fmt: skip
+            _mixture_row(w, x_post[i], P_post[i], x_alt, P_alt, x_post[i], P_post[i], diff)
+        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
+        lik = count * per_group - 0.5 * (nis + logdet)
+        outliers = 0
+        for g in range(G):
+            if present[i, g] and not row_in[g]:
+                outliers += 1
+                if outlier_probability > 0.0:
+                    for a in range(d):
+                        eye[a, 0] = 0.0
+                        for b in range(d):
+                            block[a, b] = S[i, g * d + a, g * d + b]
+                    logdet_g = _lu_solve(block, eye, work)
+                    lik += (
+                        math.log(outlier_probability) - d * math.log(outlier_scale)
+                        - 0.5 * d2[i, g] / outlier_scale**2 - 0.5 * (logdet_g + d * log_2pi)
+                    )  # fmt: skip
+        log_lik[i] = lik if math.isfinite(lik) else -1e300
+        rejected[i] = outliers
+        usable = ok_sigma[i] and ok_S and count > 0
+        prior_var, post_var = P[i, 0, 0], P_post[i, 0, 0]
+        post_ok = post_var > 0 and math.isfinite(x_post[i, 0])
+        # The frame's information about delta_L (how much it shrank the variance) must
+        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
+        informative = prior_var - post_var > min_information * prior_var * post_var
+        settled = usable and post_ok
+        done[i] = settled and informative
+        uninformative = settled and not informative
+        st = flag_outlier if outliers else 0
+        if not (done[i] or uninformative):
+            st |= flag_held
+        if count > 0 and not (ok_S and post_ok):
+            st |= flag_repaired
+        if uninformative:
+            st |= flag_uninformative | flag_held
+        status[i] = st
+        shown[i] = usable and not uninformative
+        nis_out[i] = nis if shown[i] else math.nan
+        dof[i] = d * count if shown[i] else 0
+    return x_post, P_post, nis_out, dof, log_lik, inlier, status, rejected, done, shown
+
+
+
+
+# ------------------------------------------------------------------------------ a step
+@numba.njit(cache=True, nogil=True)
+def begin_step(
+    time_s, q, last_time_s, last_q, partial, x, P, active, running, process_noise,
+    rotation_gain, joint_error, gain_error, deviation_length, deviation_rate, rate_noise,
+    max_variance, deviation, rate, flag,
+):  # fmt: skip
+    """The process side of one frame for B trials: the predict of the active hypotheses of
+    the running trials, in place.
+
+    Parameters
+    ----------
+    time_s : array (B,), q : array (B, 3)
+        The frame's times (s) and joint values (rad, mm, mm).
+    last_time_s, last_q : arrays (B,), (B, 3)
+        The previous frame's (NaN: unknown, no change), overwritten with this frame's.
+    partial : bool array (B,)
+        Trials whose frame lacks part of its data.
+    x, P : arrays (B, H, n), (B, H, n, n)
+        The hypotheses, predicted in place.
+    active : bool array (B, H); running : bool array (B,)
+    process_noise, rotation_gain : float
+        Torsion random walk, rad^2/s, and its growth per rad of base turn, rad.
+    joint_error, gain_error : float
+        The deviation's prior: joint-equivalent std (mm) and relative bending-gain error.
+    deviation_length, deviation_rate : float
+        The deviation's correlation length in joint travel (mm) and its decay rate (1/s).
+    rate_noise, max_variance : float
+        The rate's process noise (rad^2/s^3) and the delta_L variance cap (rad^2).
+    deviation, rate : int
+        Indices in the state (-1: none).
+    flag : int array
+        Flag values in the order of ``FLAG_ORDER``.
+
+    Returns
+    -------
+    flags : int array (B,)
+    dt, turn, Q : arrays (B,)
+        Frame interval (s), base turn (rad) and the torsion's process variance (rad^2).
+    prior : array (B, 2)
+        The deviation's prior variance at the frame's joints, mm^2.
+    ok : bool array (B, H)
+        Hypotheses whose prediction is usable (False where predicted and not: to repair).
+    L : array (B, H, n, n)
+        Lower Cholesky factors of the predicted covariances (where predicted and ok).
+    """
+    B, H, n = x.shape
+    flags = np.zeros(B, dtype=np.int64)
+    dt = np.zeros(B)
+    turn = np.zeros(B)
+    Q = np.empty(B)
+    prior = np.empty((B, 2))
+    ok = np.ones((B, H), dtype=np.bool_)
+    L = np.zeros((B, H, n, n))
+    work = np.empty((n, n))
+    for t in range(B):
+        known = math.isfinite(last_time_s[t])
+        moved = 0.0
+        for j in range(3):
+            change = 0.0
+            # Joint values before the first frame (or after a prior is set) are unknown.
+            if known and math.isfinite(last_q[t, j]):
+                change = q[t, j] - last_q[t, j]
+            if j == 0:
+                turn[t] = change
+            else:
+                moved += abs(change)
+            last_q[t, j] = q[t, j]
+        if known:
+            dt[t] = time_s[t] - last_time_s[t]
+        last_time_s[t] = time_s[t]
+        Q[t] = process_noise * dt[t] + rotation_gain * abs(turn[t])
+        if partial[t]:
+            flags[t] = flag[_PARTIAL]
+        for j in range(2):
+            bend = gain_error * q[t, 1 + j]
+            prior[t, j] = joint_error * joint_error + bend * bend
+        if not running[t]:
+            continue
+        decay = math.exp(-abs(moved) / deviation_length - deviation_rate * dt[t])
+        for h in range(H):
+            if active[t, h]:
+                ok[t, h] = _predict_row(
+                    x[t, h], P[t, h], Q[t], decay, prior[t, 0], prior[t, 1], dt[t], deviation,
+                    rate, rate_noise, max_variance, L[t, h], work,
+                )  # fmt: skip
+    return flags, dt, turn, Q, prior, ok, L
+
+
+@numba.njit(cache=True, nogil=True)
+def prepare_fuse(noise, present, running, active, P, reacquire_variance, flags, flag):
+    """Which hypotheses a frame updates (B trials, H slots).
+
+    Returns ``(usable, measured, all_wide, updating)``: whether every present group's noise
+    has positive variances (if not, nothing is changed: the caller raises); the trials that
+    measured anything (the others get ``NO_MEASUREMENT`` and ``HELD`` or
+    ``NOT_INITIALISED``); the running trials whose hypotheses are all too wide to update
+    (delta_L variance beyond ``reacquire_variance``: restarted from the frame); and the
+    hypotheses updated (B, H). A wide hypothesis beside a narrow one is dropped (``active``
+    changed in place).
+    """
+    B, G, d = noise.shape[0], noise.shape[1], noise.shape[2]
+    H = active.shape[1]
+    for t in range(B):
+        for g in range(G):
+            if present[t, g]:
+                for a in range(d):
+                    if not noise[t, g, a, a] > 0.0:
+                        return False, None, None, None
+    measured = np.zeros(B, dtype=np.bool_)
+    all_wide = np.zeros(B, dtype=np.bool_)
+    updating = np.zeros((B, H), dtype=np.bool_)
+    for t in range(B):
+        for g in range(G):
+            measured[t] = measured[t] or present[t, g]
+        if not measured[t]:
+            flags[t] |= flag[_NO_MEASUREMENT]
+            flags[t] |= flag[_HELD] if running[t] else flag[_NOT_INITIALISED]
+        if not running[t]:
+            continue
+        narrow = False
+        for h in range(H):
+            if active[t, h] and not P[t, h, 0, 0] > reacquire_variance:
+                narrow = True
+        some = False
+        for h in range(H):
+            if not active[t, h]:
+                continue
+            if P[t, h, 0, 0] > reacquire_variance:
+                if narrow:
+                    active[t, h] = False
+            else:
+                updating[t, h] = measured[t]
+            some = some or active[t, h]
+        all_wide[t] = some and not narrow and measured[t]
+    return True, measured, all_wide, updating
+
+
+@numba.njit(cache=True, nogil=True)
+def leading(active, log_weight):
+    """Each trial's heaviest active hypothesis (the first of equals; 0 if none)."""
+    B, H = active.shape
+    lead = np.zeros(B, dtype=np.intp)
+    for t in range(B):
+        best = -math.inf
+        for h in range(H):
+            w = log_weight[t, h] if active[t, h] else -math.inf
+            if w > best:
+                best, lead[t] = w, h
+    return lead
+
+
+@numba.njit(cache=True, nogil=True)
+def apply_update(
+    b, h, status, nis, dof, rejected_groups, tip_fused_rows, active, log_weight, running,
+    all_wide, measured, three_d, flags, out_nis, out_dof, rejected, bad_run, tip_fused,
+    noise_scale, adapt, gates, forgetting, low, high, flag,
+):  # fmt: skip
+    """Each trial's report from its leading hypothesis' update (rows ``b``, ``h``) and what
+    follows from it, in place: the flags, NIS and its dof, the rejected groups, the run of
+    frames rejected as a whole (reset by any other), whether the frame's tip was fused, and
+    with ``adapt`` the noise scale (a forgetting average of NIS/dof, each ratio capped at
+    its gate ``gates[dof]`` and at 10, within ``[low, high]``).
+
+    Returns ``(spawn, first, row)``: the trials whose leading hypothesis rejected data (3-D
+    frames: a hypothesis from the frame alone is weighed against it), the trials the frame
+    may start (not running, measured; 3-D frames), and the update's row of each trial (-1:
+    none reported).
+    """
+    B = active.shape[0]
+    lead = leading(active, log_weight)
+    row = np.full(B, -1, dtype=np.intp)
+    for i in range(b.shape[0]):
+        t = b[i]
+        if h[i] == lead[t] and running[t] and not all_wide[t]:
+            row[t] = i
+    spawn = np.zeros(B, dtype=np.bool_)
+    first = np.zeros(B, dtype=np.bool_)
+    held_rejected = flag[_OUTLIER] | flag[_HELD]
+    for t in range(B):
+        if three_d:
+            first[t] = measured[t] and not running[t]
+        elif measured[t] and not running[t]:
+            # A single view leaves a mirror ambiguity: it updates a filter, never starts one.
+            flags[t] |= flag[_NOT_INITIALISED] | flag[_UNINFORMATIVE]
+        if not three_d and all_wide[t]:
+            flags[t] |= flag[_UNINFORMATIVE] | flag[_HELD]
+        i = row[t]
+        if i < 0:
+            continue
+        st = status[i]
+        flags[t] |= st
+        out_nis[t] = nis[i]
+        out_dof[t] = dof[i] if math.isfinite(nis[i]) else 0
+        rejected[t] += rejected_groups[i]
+        if (st & held_rejected) != held_rejected:
+            bad_run[t] = 0
+        tip_fused[t] = tip_fused[t] or tip_fused_rows[i]
+        spawn[t] = three_d and (st & flag[_OUTLIER]) != 0
+        if adapt and math.isfinite(nis[i]) and dof[i] > 0:
+            k = dof[i]
+            ratio = min(min(nis[i], gates[k]), 10.0 * k) / k
+            value = noise_scale[t] * (forgetting + (1.0 - forgetting) * ratio)
+            noise_scale[t] = min(max(value, low), high)
+    return spawn, first, row
+
+
+@numba.njit(cache=True, nogil=True)
+def normalise_single(active, log_weight):
+    """Whether every trial has its hypotheses in slot 0 only (``first_only``) and at most
+    one (``single``); with ``single`` the weights become 0 (log) where active, -inf
+    elsewhere, in place."""
+    B, H = active.shape
+    first_only = True
+    single = True
+    for t in range(B):
+        count = 0
+        for h in range(H):
+            if active[t, h]:
+                count += 1
+                if h > 0:
+                    first_only = False
+        if count > 1:
+            single = False
+    if single:
+        for t in range(B):
+            for h in range(H):
+                log_weight[t, h] = 0.0 if active[t, h] else -math.inf
+    return first_only, single
+
+
+@numba.njit(cache=True, nogil=True)
+def report(x, P, active, log_weight, initialised, prior, deviation, flags, flag):
+    """The estimate of B trials: the moment-matched mean (circular) and std of delta_L over
+    their hypotheses (NaN before a start), and ``MODEL_MISMATCH`` where the leading
+    hypothesis' deviation is beyond three prior stds (in place in ``flags``)."""
+    B, H = active.shape
+    mean = np.full(B, np.nan)
+    std = np.full(B, np.nan)
+    lead = leading(active, log_weight)
+    for t in range(B):
+        k = lead[t]
+        if deviation >= 0 and initialised[t]:
+            for j in range(2):
+                v = x[t, k, deviation + j]
+                if v * v > 9.0 * prior[t, j]:
+                    flags[t] |= flag[_MISMATCH]
+        count = 0
+        top = -math.inf
+        for h in range(H):
+            if active[t, h]:
+                count += 1
+                top = max(top, log_weight[t, h])
+        if count == 0:
+            continue
+        if count == 1:
+            m, v = x[t, k, 0], P[t, k, 0, 0]
+        else:
+            if not math.isfinite(top):
+                top = 0.0
+            total = 0.0
+            for h in range(H):
+                if active[t, h]:
+                    total += math.exp(log_weight[t, h] - top)
+            log_total = top + math.log(max(total, 1e-300))
+            s, c = 0.0, 0.0
+            for h in range(H):
+                if active[t, h]:
+                    w = math.exp(log_weight[t, h] - log_total)
+                    s += w * math.sin(x[t, h, 0])
+                    c += w * math.cos(x[t, h, 0])
+            m = math.atan2(s, c)
+            v = 0.0
+            for h in range(H):
+                if active[t, h]:
+                    w = math.exp(log_weight[t, h] - log_total)
+                    spread = _wrap(x[t, h, 0] - m)
+                    v += w * (P[t, h, 0, 0] + spread * spread)
+            m = _wrap(m)
+        if initialised[t] and math.isfinite(m):
+            mean[t] = m
+            std[t] = math.sqrt(v)
+    return mean, std
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types
+    (the flag values and the gate tables are shared read-only arrays, a type of their own)."""
+
+    def shared(a):
+        a.flags.writeable = False
+        return a
+
+    flag = shared(np.arange(1, 9, dtype=np.int64))
+    for n in (1, 3, 4):
+        B, H, G = 1, 2, 2
+        x = np.zeros((B, H, n))
+        P = np.broadcast_to(np.eye(n), (B, H, n, n)).copy()
+        active = np.ones((B, H), dtype=bool)
+        running = np.ones(B, dtype=bool)
+        flags, dt, turn, Q, prior, ok, L = begin_step(
+            np.zeros(B), np.zeros((B, 3)), np.full(B, np.nan), np.zeros((B, 3)),
+            np.zeros(B, dtype=bool), x, P, active, running, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0,
+            1.0, 1.0, 1 if n > 2 else -1, 1 if n == 4 else -1, flag,
+        )  # fmt: skip
+        for d in (2, 3):
+            noise = np.broadcast_to(np.eye(d), (B, G, d, d)).copy()
+            present = np.ones((B, G), dtype=bool)
+            _, measured, all_wide, updating = prepare_fuse(
+                noise, present, running, active, P, 1.0, flags, flag
+            )
+            m = G * d
+            S = np.broadcast_to(np.eye(m), (1, m, m)).copy()
+            out = gate_and_fuse(
+                S, np.zeros((1, m)), np.zeros((1, n, m)), np.ones((1, G)), present,
+                np.ones(1, dtype=bool), x[:, 0], P[:, 0], d, 0.01, 5.0, 10.0, 5.0,
+                shared(np.full(G + 1, 20.0)), 1.0, flag,
+            )  # fmt: skip
+        rows = np.zeros(1, dtype=np.intp)
+        lw = np.zeros((B, H))
+        apply_update(
+            rows, rows, out[6], out[2], out[3], out[7], np.ones(1, dtype=bool), active, lw,
+            running, all_wide, measured, True, flags, np.zeros(B), np.zeros(B, dtype=np.int64),
+            np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64), np.zeros(B, dtype=bool),
+            np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag,
+        )  # fmt: skip
+        normalise_single(active, lw)
+        report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
+
+
+__all__ = [
+    "FLAG_ORDER",
+    "apply_update",
+    "begin_step",
+    "gate_and_fuse",
+    "leading",
+    "normalise_single",
+    "prepare_fuse",
+    "report",
+    "warm_up",
+]
