@@ -139,9 +139,13 @@ def test_innovation_is_the_unscented_transform_of_the_3d_model(n, deviation, rat
     c, JK, y, noise, x, P, q_r = _frame(rng, r, G, n, deviation, rate, has_velocity)
     Wm, Wc, spread = _weights(n)
     L = np.linalg.cholesky(P)
+    # The noise is the segmentation noise scaled plus the model error.
+    scale = rng.uniform(0.5, 2.0, r)
+    M = np.stack([[_spd(rng, 3, 0.01) for _ in range(G)] for _ in range(r)])
     S, rho, Pxz, d2, offsets = K.innovation_3d(
-        x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, has_velocity
+        x, L, spread, c, JK, y, q_r, noise, scale, M, Wm, Wc, deviation, rate, has_velocity
     )
+    noise = noise * scale[:, None, None, None] + M
     for i in range(r):
         U = np.linalg.cholesky(spread * P[i]).T
         sigmas = np.vstack([x[i], x[i] + U, x[i] - U])
@@ -175,6 +179,33 @@ def test_innovation_is_the_unscented_transform_of_the_3d_model(n, deviation, rat
     S2, rho2, Pxz2, d22 = K.innovation_stats(hs, z, offsets, noise, Wm, Wc, 3)
     for a, b in ((S, S2), (rho, rho2), (Pxz, Pxz2), (d2, d22)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_frame_radius_and_model_error():
+    rng = np.random.default_rng(RNG_SEED)
+    B, G = 3, 4
+    c = rng.normal(size=(B, G, 3))
+    present = rng.random((B, G)) < 0.7
+    P = G - 1  # the last group is the velocity
+    radius = K.horizontal_radius(c, present, P)
+    expected = np.sqrt([sum(c[t, g, 0] ** 2 + c[t, g, 1] ** 2 for g in range(P) if present[t, g])
+                        for t in range(B)])  # fmt: skip
+    np.testing.assert_allclose(radius, expected, rtol=1e-14)
+    JK = rng.normal(size=(B, G, 3, 5))
+    u_norm, rate_var = rng.uniform(0, 5, B), rng.uniform(0, 1, B)
+    M = K.model_error(JK, 0.05, True, c, u_norm, 0.1, rate_var)
+    for t in range(B):
+        for g in range(G):
+            J = JK[t, g, :, :2]
+            expected = 0.05**2 * J @ J.T
+            if g == G - 1:
+                tangent = np.cross([0.0, 0.0, 1.0], c[t, 0])
+                expected = expected + (0.1 * u_norm[t]) ** 2 * np.eye(3)
+                expected = expected + rate_var[t] * np.outer(tangent, tangent)
+            np.testing.assert_allclose(M[t, g], expected, rtol=1e-12, atol=1e-15)
+    without = K.model_error(JK, 0.05, False, c, u_norm, 0.1, rate_var)
+    np.testing.assert_allclose(without[:, -1], 0.05**2 * JK[:, -1, :, :2] @ np.swapaxes(
+        JK[:, -1, :, :2], -1, -2), rtol=1e-12)  # fmt: skip
 
 
 def _statistics(rng, n, G, d):

@@ -67,7 +67,6 @@ from tracker.estimators import ukf_kernels
 
 Array = np.ndarray
 _EYE3 = np.eye(3)
-_HORIZONTAL = np.array([1.0, 1.0, 0.0])
 # rotation_invariant as a linear map of the nine entries (row-major) of a 3x3 matrix: the
 # halves are exact, so its products give the same numbers as the entry-wise formula.
 _ROTATION_AVERAGE = np.zeros((9, 9))
@@ -174,9 +173,9 @@ class FrameGroups:
 
     def radius_mm(self) -> Array:
         """Horizontal radius of the present positions' model vectors, mm (B,)."""
-        P = self.n_positions
-        c = self.c[:, :P]
-        return np.sqrt(np.einsum("bp,bpi,bpi,i->b", self.present[:, :P], c, c, _HORIZONTAL))
+        return ukf_kernels.horizontal_radius(
+            np.ascontiguousarray(self.c), self.present, self.n_positions
+        )
 
     def is_tip_group(self, g: int) -> bool:
         """Group 0 is the tip."""
@@ -222,21 +221,26 @@ class FrameGroups:
         ).reshape(sigmas.shape[:2] + c.shape[1:])
 
     def innovation(
-        self, b: Array, x: Array, factor: Array, spread: float, noise: Array, Wm: Array,
-        Wc: Array, rate: int, deviation: int,
+        self, b: Array, x: Array, factor: Array, spread: float, scale: Array, M: Array,
+        Wm: Array, Wc: Array, rate: int, deviation: int,
     ) -> tuple[Array, Array, Array, Array, Array]:
         """The UKF's innovation statistics of hypotheses x (r, n) of trials b, with the lower
         Cholesky factors of their covariances, in the model frame at each one's prior mean:
-        ``S`` (r, m, m) with the ``noise`` (r, G, 3, 3) blocks, the residual (r, m), ``Pxz``
-        (r, n, m), each group's squared residual under its block of S (r, G) and the sigma
-        points' offsets (:func:`~tracker.estimators.ukf_kernels.innovation_3d`; ``rate``,
-        ``deviation``: indices in the state, -1 for none)."""
+        ``S`` (r, m, m) with the noise blocks ``scale R_bar + M`` (``scale`` (r,), the model
+        error M of every trial (B, G, 3, 3)), the residual (r, m), ``Pxz`` (r, n, m), each
+        group's squared residual under its block of S (r, G) and the sigma points' offsets
+        (:func:`~tracker.estimators.ukf_kernels.innovation_3d`; ``rate``, ``deviation``:
+        indices in the state, -1 for none)."""
         whole = is_every_trial(b, self.y.shape[0])
-        c, JK, y = (self.c, self.JK, self.y) if whole else (self.c[b], self.JK[b], self.y[b])
+        if whole:
+            c, JK, y, R, M = self.c, self.JK, self.y, self.R_bar, M
+        else:
+            c, JK, y, R, M = self.c[b], self.JK[b], self.y[b], self.R_bar[b], M[b]
         contiguous = np.ascontiguousarray
         return ukf_kernels.innovation_3d(
             x, factor, spread, contiguous(c), contiguous(JK), contiguous(y),
-            contiguous(self.q[b, 0]), noise, Wm, Wc, deviation, rate,
+            contiguous(self.q[b, 0]), contiguous(R), contiguous(scale, dtype=float), M, Wm,
+            Wc, deviation, rate,
             self.has_velocity_group,
         )  # fmt: skip
 
@@ -312,10 +316,12 @@ class ViewGroups:
         return self
 
     def innovation(
-        self, b: Array, x: Array, factor: Array, spread: float, noise: Array, Wm: Array,
-        Wc: Array, rate: int, deviation: int,
+        self, b: Array, x: Array, factor: Array, spread: float, scale: Array, M: None,
+        Wm: Array, Wc: Array, rate: int, deviation: int,
     ) -> tuple[Array, Array, Array, Array, Array]:
-        """As :meth:`FrameGroups.innovation`, in image coordinates (2-D groups)."""
+        """As :meth:`FrameGroups.innovation`, in image coordinates (2-D groups; the noise is
+        ``scale R``, without a model error)."""
+        noise = self.R[b] * np.asarray(scale, dtype=float)[:, None, None, None]
         sigmas, offsets = ukf_kernels.sigma_rows(x, factor, spread)
         r = x.shape[0]
         hs = np.ascontiguousarray(self.predict(b, sigmas).reshape(r, sigmas.shape[1], -1))
@@ -522,19 +528,13 @@ def model_error_covariance(
     dt_s : array, shape (B,)
         The frame interval, s.
     """
-    J = groups.J
-    M = (white_mm * white_mm) * (J @ J.mT)
-    if groups.has_velocity_group:
-        c_tip = groups.c[:, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rate_var = np.where(dt_s > 0, process_var_rad2 / dt_s**2, 0.0)
-        tangent = np.zeros(c_tip.shape)
-        tangent[:, 0], tangent[:, 1] = -c_tip[:, 1], c_tip[:, 0]
-        M[:, -1] += (
-            (velocity_relative_error * groups.u_norm_mm_s)[:, None, None] ** 2 * _EYE3
-            + rate_var[:, None, None] * tangent[:, :, None] * tangent[:, None, :]
-        )
-    return M
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate_var = np.where(dt_s > 0, process_var_rad2 / dt_s**2, 0.0)
+    return ukf_kernels.model_error(
+        np.ascontiguousarray(groups.JK), float(white_mm), groups.has_velocity_group,
+        np.ascontiguousarray(groups.c), np.ascontiguousarray(groups.u_norm_mm_s, dtype=float),
+        float(velocity_relative_error), rate_var,
+    )  # fmt: skip
 
 
 def group_coefficients(y: Array, c: Array, W: Array, q_r: Array) -> Array:

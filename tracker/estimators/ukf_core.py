@@ -543,11 +543,8 @@ class FilterBank:
             factor, ok_sigma = ukf_kernels.sigma_factors(P, self.spread)
         else:
             ok_sigma = np.ones(r, dtype=bool)
-        noise = frame.noise(rows) * scale[rows, None, None, None]
-        if M is not None:
-            noise += M[rows]
         S, rho, Pxz, d2, _ = frame.innovation(
-            rows, x, factor, self.spread, noise, self.Wm, self.Wc, self._rate_index,
+            rows, x, factor, self.spread, scale[rows], M, self.Wm, self.Wc, self._rate_index,
             self._deviation_index,
         )  # fmt: skip
         present = frame.present[rows]
@@ -563,24 +560,15 @@ class FilterBank:
                 doubt_threshold(d, p, k), gates, self.min_information, _FLAGS,
             )
         )  # fmt: skip
-        if rows is not b and done.all():
-            self.x[:, 0] = self.good_x[:, 0] = x_post
-            self.P[:, 0] = self.good_P[:, 0] = P_post
-            self.mismatch_scale = 1.0 + MISMATCH_DECAY * (self.mismatch_scale - 1.0)
-        elif done.any():
-            bd, hd = b[done], h[done]
-            self.x[bd, hd] = self.good_x[bd, hd] = x_post[done]
-            self.P[bd, hd] = self.good_P[bd, hd] = P_post[done]
-            self.mismatch_scale[bd] = 1.0 + MISMATCH_DECAY * (self.mismatch_scale[bd] - 1.0)
-        if rows is b:
-            self.log_weight[b, h] += log_lik
-        else:
-            self.log_weight[:, 0] += log_lik
+        ukf_rules.commit_update(
+            b, h, done, x_post, P_post, log_lik, self.x, self.P, self.good_x, self.good_P,
+            self.log_weight, self.mismatch_scale, MISMATCH_DECAY,
+        )  # fmt: skip
         innovation = None
         if self.B == 1:
             # The fused residuals of each shown update (the inlying groups').
             rho_g = rho.reshape(r, G, d)
-            innovation = [rho_g[i][inlier[i]].ravel() if shown[i] else None for i in range(r)]
+            innovation = [rho_g[i, inlier[i]].ravel() if shown[i] else None for i in range(r)]
         return UpdateResult(
             b=b, h=h, status=status, nis=nis, dof=dof, rejected=rejected, inlier=inlier,
             fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,

@@ -418,7 +418,9 @@ def predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity):
 
 
 @numba.njit(cache=True, nogil=True)
-def innovation_3d(x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, has_velocity):
+def innovation_3d(
+    x, L, spread, c, JK, y, q_r, R, scale, M, Wm, Wc, deviation, rate, has_velocity
+):  # fmt: skip
     """Sigma points, the 3-D measurement model and the innovation statistics of r
     hypotheses, in the model frame at each one's prior mean (the measured vectors turned by
     ``-(q_r + x_0)``).
@@ -436,8 +438,9 @@ def innovation_3d(x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, h
         Measured vectors in {B}.
     q_r : array (r,)
         Base rotation, rad.
-    noise : array (r, G, 3, 3)
-        Each group's noise covariance in the model frame.
+    R : array (r, G, 3, 3), scale : array (r,), M : array (r, G, 3, 3)
+        Each group's noise covariance in the model frame is ``scale R + M`` (segmentation
+        noise, its adaptive scale, the white model error).
     Wm, Wc : arrays (2n + 1,)
     deviation, rate : int
         Indices in the state (-1: none).
@@ -466,7 +469,12 @@ def innovation_3d(x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, h
     D = np.empty((n_sigma, m))
     block = np.empty((3, 3))
     work = np.empty(3)
+    noise = np.empty((G, 3, 3))
     for i in range(r):
+        for g in range(G):
+            for a in range(3):
+                for b in range(3):
+                    noise[g, a, b] = R[i, g, a, b] * scale[i] + M[i, g, a, b]
         _sigma_offsets(L[i], spread, offsets[i])
         for s in range(n_sigma):
             for a in range(n):
@@ -481,7 +489,7 @@ def innovation_3d(x, L, spread, c, JK, y, q_r, noise, Wm, Wc, deviation, rate, h
             z[3 * g + 1] = sn * y0 + cs * y1
             z[3 * g + 2] = y[i, g, 2]
         _statistics(
-            hs, z, offsets[i], noise[i], Wm, Wc, G, 3, S[i], rho[i], Pxz[i], d2[i], zp, D,
+            hs, z, offsets[i], noise, Wm, Wc, G, 3, S[i], rho[i], Pxz[i], d2[i], zp, D,
             block, work,
         )
     return S, rho, Pxz, d2, offsets
@@ -618,6 +626,48 @@ def mixture_rows(w, x1, P1, x2, P2):
     return x, P
 
 
+# ------------------------------------------------------------------------------ frames
+@numba.njit(cache=True, nogil=True)
+def horizontal_radius(c, present, n_positions):
+    """Root of the summed squared horizontal radii of the present positions' model vectors
+    (the first ``n_positions`` groups of c (B, G, 3)), mm (B,)."""
+    B = c.shape[0]
+    out = np.empty(B)
+    for t in range(B):
+        total = 0.0
+        for g in range(n_positions):
+            if present[t, g]:
+                total += c[t, g, 0] * c[t, g, 0] + c[t, g, 1] * c[t, g, 1]
+        out[t] = math.sqrt(total)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, rate_var):
+    """The white model-error covariance ``white^2 J J^T`` of every group (B, G, 3, 3), plus on
+    the velocity group (the last, with ``has_velocity``) the relative error of the modelled
+    velocity, ``(relative_error |u|)^2 I``, and the torsion change over the interval,
+    ``rate_var t t^T`` with t the tip's tangent ``e_z x c_tip`` (``rate_var`` (B,),
+    rad^2/s^2)."""
+    B, G = JK.shape[0], JK.shape[1]
+    M = np.empty((B, G, 3, 3))
+    w2 = white_mm * white_mm
+    for t in range(B):
+        for g in range(G):
+            for a in range(3):
+                for b in range(3):
+                    M[t, g, a, b] = w2 * (JK[t, g, a, 0] * JK[t, g, b, 0]
+                                          + JK[t, g, a, 1] * JK[t, g, b, 1])  # fmt: skip
+        if has_velocity:
+            v = relative_error * u_norm[t]
+            tangent = (-c[t, 0, 1], c[t, 0, 0], 0.0)
+            for a in range(3):
+                M[t, G - 1, a, a] += v * v
+                for b in range(3):
+                    M[t, G - 1, a, b] += rate_var[t] * tangent[a] * tangent[b]
+    return M
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
     for n in (1, 3, 4):
@@ -634,9 +684,10 @@ def warm_up() -> None:
         G = 2
         c = np.ones((1, G, 3))
         predict_3d(sigmas, c, np.zeros((1, G, 3, 5)), np.zeros(1), -1, -1, False)
+        eye = np.broadcast_to(np.eye(3), (1, G, 3, 3)).copy()
         S, rho, Pxz, d2, offsets = innovation_3d(
-            x, L, 1.0, c, np.zeros((1, G, 3, 5)), c, np.zeros(1),
-            np.broadcast_to(np.eye(3), (1, G, 3, 3)).copy(), W, W, -1, -1, False,
+            x, L, 1.0, c, np.zeros((1, G, 3, 5)), c, np.zeros(1), eye, np.ones(1), eye, W, W,
+            -1, -1, False,
         )  # fmt: skip
         for d in (2, 3):
             hs = np.zeros((1, 2 * n + 1, G * d))
@@ -644,11 +695,16 @@ def warm_up() -> None:
             S, rho, Pxz, d2 = innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
             fuse_rows(S, rho, Pxz, np.ones((1, G), dtype=bool), d, x, P)
             mixture_rows(np.ones(1), x, P, x, P)
+            present = np.ones((1, G), dtype=bool)
+            horizontal_radius(c, present, G)
+            model_error(np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1))
 
 
 __all__ = [
     "cap_rows",
     "fuse_rows",
+    "horizontal_radius",
+    "model_error",
     "innovation_3d",
     "innovation_stats",
     "mixture_rows",

@@ -519,6 +519,29 @@ def apply_update(
 
 
 @numba.njit(cache=True, nogil=True)
+def commit_update(b, h, done, x_post, P_post, log_lik, x, P, good_x, good_P, log_weight,
+                  mismatch_scale, mismatch_decay):  # fmt: skip
+    """Write the updated hypotheses (rows ``b``, ``h``) back, in place: the posterior where
+    ``done`` (also as the last good state), the frame's log-likelihood added to every row's
+    weight, and the model-mismatch inflation of each trial with a posterior brought back
+    towards 1 by ``mismatch_decay`` (once per trial)."""
+    B = x.shape[0]
+    decayed = np.zeros(B, dtype=np.bool_)
+    n = x.shape[2]
+    for i in range(b.shape[0]):
+        t, k = b[i], h[i]
+        if done[i]:
+            for a in range(n):
+                x[t, k, a] = good_x[t, k, a] = x_post[i, a]
+                for c in range(n):
+                    P[t, k, a, c] = good_P[t, k, a, c] = P_post[i, a, c]
+            if not decayed[t]:
+                mismatch_scale[t] = 1.0 + mismatch_decay * (mismatch_scale[t] - 1.0)
+                decayed[t] = True
+        log_weight[t, k] += log_lik[i]
+
+
+@numba.njit(cache=True, nogil=True)
 def normalise_single(active, log_weight):
     """Whether every trial has its hypotheses in slot 0 only (``first_only``) and at most
     one (``single``); with ``single`` the weights become 0 (log) where active, -inf
@@ -638,6 +661,13 @@ def warm_up() -> None:
             np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag,
         )  # fmt: skip
         normalise_single(active, lw)
+        out = gate_and_fuse(
+            S, np.zeros((1, m)), np.zeros((1, n, m)), np.ones((1, G)), present,
+            np.ones(1, dtype=bool), x[:, 0], P[:, 0], d, 0.01, 5.0, 10.0, 5.0,
+            shared(np.full(G + 1, 20.0)), 1.0, flag,
+        )  # fmt: skip
+        commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(), lw,
+                      np.ones(B), 0.99)  # fmt: skip
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
 
@@ -645,6 +675,7 @@ __all__ = [
     "FLAG_ORDER",
     "apply_update",
     "begin_step",
+    "commit_update",
     "gate_and_fuse",
     "leading",
     "normalise_single",
