@@ -28,7 +28,7 @@ magnification from far away (the paper's orthographic model is its limit).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -480,12 +480,29 @@ def render_view(
     bg = np.asarray(background, np.float32)
     if bg.shape != (height, width):
         raise ValueError(f"background has shape {bg.shape}, the view is {width}x{height} px")
-    image = bg.copy()
+    dx, dy = change.shift_px
+    if dx or dy:
+        # A shifted camera images the scene as sharply as an unshifted one: the catheter is
+        # drawn through the camera with its principal point moved by the shift (the whole
+        # image moved, distortion included), and only the smooth scene behind it is
+        # resampled. Resampling the finished image would blur the catheter's edges by up
+        # to half a pixel, differently on every frame.
+        K = np.array(view.K, float)
+        K[0, 2] += dx
+        K[1, 2] += dy
+        view = PinholeView(K, view.R_cam_w, view.t_cam_w, view.dist, view.image_size)
+        image = ImagingChange(shift_px=(dx, dy)).apply(bg)
+        change = replace(change, shift_px=(0.0, 0.0))
+    else:
+        image = bg.copy()
     if pose is not None:
         T, (x0, y0, w, h) = transmission(view, catheter, pose, settings)
         if w and h:
             image[y0 : y0 + h, x0 : x0 + w] *= T
+    # Occluders are in the scene: they move with it (by the shift to the nearest pixel).
+    ox, oy = round(dx), round(dy)
     for x, y, w, h in occluders:
+        x, y = x + ox, y + oy
         image[max(y, 0) : y + h, max(x, 0) : x + w] = 245.0
     if change != NO_CHANGE:
         image = change.apply(image)

@@ -10,10 +10,14 @@ segmented, a hand, anything new). Slow changes of the scene (a lamp drifting acr
 warming sensor) are followed; the catheter, present from the first frame, is not burnt in.
 ``freeze_background`` keeps the image as given.
 
-When a frame no longer registers with the model (the camera moved: the photometric fit finds
-a shift of the whole image above ``camera_moved_px``), the model is re-registered by that
-shift if it is at most ``max_shift_px`` and the frame then fits it; the frames are flagged
-CAMERA_MOVED from then on (the rig's calibration of that camera may no longer hold).
+Every frame's shift from the model is measured to a few hundredths of a pixel
+(:func:`tracker.vision.photometry.fit_shift`): a camera that vibrates gives points that
+:meth:`CameraSegmenter.in_camera_frame` moves back into the background's pixels, where the
+rig's calibration holds. When the shift persists (the camera moved: an average of the
+frames' shifts above ``camera_moved_px``, or one frame's above three times that), the model
+is re-registered by that shift if it is at most ``max_shift_px`` and the frame then fits it;
+the frames are flagged CAMERA_MOVED from then on (the rig's calibration of that camera may
+no longer hold).
 Otherwise the frame is flagged BACKGROUND_LOST and not segmented: take a new background.
 
 :class:`CameraSegmenter` wires one camera: the per-view :class:`Segmenter`, its background
@@ -31,18 +35,32 @@ import cv2
 import numpy as np
 
 from tracker.vision.detection import detection_backgrounds
-from tracker.vision.photometry import Photometry, background_samples, register_shift
+from tracker.vision.photometry import (
+    Photometry,
+    background_samples,
+    fit_shift,
+    register_shift,
+    shift_grid_mask,
+    shift_samples,
+    significant_shift,
+)
 from tracker.vision.segmentation import (
     NOT_SEGMENTED,
     SegmentationFlag,
     Segmenter,
     ViewSegmentation,
+    shifted_back,
 )
 from tracker.vision.settings import SegmentationSettings, check_image
 
 Array = np.ndarray
 
 _REGISTRATION_STEPS = 4
+# The part of the frames' shift that persists (a camera that moved, not one that vibrates):
+# an exponential average of the shifts with this weight per frame. A vibration of 0.5 px
+# standard deviation per axis averages to 0.21 px, so it never reaches camera_moved_px
+# (1 px); a move of 3.4 px or more does on its first frame, a move of 1.5 px on its third.
+_DRIFT_WEIGHT = 0.3
 
 
 class BackgroundModel:
@@ -66,8 +84,10 @@ class BackgroundModel:
     prepared : pair of arrays, uint8
         ...as its detection step does (:func:`detection_backgrounds`)...
     samples : BackgroundSamples
-        ...and as the photometric fit does; both are recomputed after every cycle of stripes
-        (the detection and the fit do not need the last gray level of a slow change).
+        ...as the photometric fit does...
+    shift_samples : ShiftSamples
+        ...and as the fit of the frame's shift does; all three are recomputed after every
+        cycle of stripes (they do not need the last gray level of a slow change).
     shift_px : array (2,)
         Total shift the model has been re-registered by since the start, px.
     """
@@ -130,6 +150,17 @@ class BackgroundModel:
             return
         # The frame in the model's photometry, and the pixels within the gate of the model.
         in_photometry = cv2.LUT(image[y0:y1], photometry.inverse_lut())
+        dx, dy = significant_shift(photometry).tolist()
+        if dx or dy:
+            # A frame shifted from the model (a vibration) is moved back before it is
+            # averaged in: averaging shifted frames would blur the model.
+            top, bottom = max(y0 - _MARGIN_ROWS, 0), min(y1 + _MARGIN_ROWS, height)
+            move = np.array([[1.0, 0.0, -dx], [0.0, 1.0, top - y0 - dy]], np.float32)
+            in_photometry = cv2.warpAffine(
+                cv2.LUT(image[top:bottom], photometry.inverse_lut()), move,
+                (in_photometry.shape[1], y1 - y0), flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
         level = self._level[y0:y1]
         gate = s.background_gate_sigma * max(photometry.sigma_gray, 1.0) / max(photometry.gain, 0.1)
         mask = cv2.compare(cv2.absdiff(in_photometry, level), gate, cv2.CMP_LE)
@@ -159,9 +190,11 @@ class BackgroundModel:
         """Recompute what the detection and the photometric fit keep of the model."""
         self.prepared = detection_backgrounds(self.image)
         self.samples = background_samples(self.image, self.settings.noise_stride_px)
+        self.shift_samples = shift_samples(self.image)
 
 
 _SHIFT = 2  # fractional bits of the polyline coordinates given to OpenCV
+_MARGIN_ROWS = 4  # rows around a stripe read to move it back by a frame's shift
 
 
 def _to_u8(level: Array) -> Array:
@@ -202,6 +235,7 @@ class CameraSegmenter:
         self.base_px = None if base_px is None else np.asarray(base_px, float).reshape(2)
         self.last: ViewSegmentation | None = None
         self.noise_gray: float | None = None  # running estimate of the sensor noise
+        self._drift_px = np.zeros(2)  # the persistent part of the frames' shift (x, y), px
 
     @property
     def shift_px(self) -> Array:
@@ -211,6 +245,22 @@ class CameraSegmenter:
     def reset(self) -> None:
         """Forget the last frame (the next one is searched whole); the background stays."""
         self.last = None
+
+    def _moved(self, photometry: Photometry, flags: SegmentationFlag) -> bool:
+        """Whether the camera has moved from its background model: the persistent part of
+        the frames' shift (an exponential average) beyond ``camera_moved_px``, or this
+        frame's beyond three times that. A camera that vibrates is not re-registered on
+        every frame: each frame's shift is taken out of its points instead
+        (:meth:`in_camera_frame`)."""
+        if flags & SegmentationFlag.EXPOSURE or not photometry.fitted:
+            return False
+        shift = photometry.shift_px
+        self._drift_px = (1.0 - _DRIFT_WEIGHT) * self._drift_px + _DRIFT_WEIGHT * shift
+        limit = self.settings.camera_moved_px
+        return (
+            math.hypot(*self._drift_px.tolist()) > limit
+            or math.hypot(*shift.tolist()) > 3.0 * limit
+        )
 
     def segment(self, image: Array, predicted_px: Array | None = None) -> ViewSegmentation:
         """Segment one frame, then update the background and the region of interest.
@@ -222,40 +272,76 @@ class CameraSegmenter:
             Where the catheter's points are expected in this image (e.g. the last estimate's
             points reprojected), px: the search starts in the region around them and the
             base. Without them, the region around the last frame's catheter.
+
+        Returns
+        -------
+        ViewSegmentation
+            In the frame's pixels; its ``photometry.shift_px`` is the frame's shift from the
+            background model, refined on a dense grid (:func:`fit_shift`), and
+            :meth:`in_camera_frame` moves the points into the pixels of the camera's
+            background image as it was given.
         """
         image = check_image(image, f"{self.name} image", self.background.image.shape)
         s = self.settings
         segmenter = self.segmenter
-        photometry = segmenter.photometry(
-            image, self.background.image, self.background.samples
-        )
+        model = self.background
+        photometry = segmenter.photometry(image, model.image, model.samples)
         flags = segmenter.photometry_flags(photometry)
         extra = SegmentationFlag.NONE
-        if flags & SegmentationFlag.CAMERA_MOVED and not flags & SegmentationFlag.EXPOSURE:
+        if self._moved(photometry, flags):
             photometry, extra = self._reregister(image, photometry)
-        if math.hypot(*self.background.shift_px.tolist()) > s.camera_moved_px:
+            self._drift_px = np.zeros(2)
+        if math.hypot(*model.shift_px.tolist()) > s.camera_moved_px:
             extra |= SegmentationFlag.CAMERA_MOVED
         if extra & SegmentationFlag.BACKGROUND_LOST:
             seg = segmenter.empty_result(flags | extra, photometry)
         else:
             seg = segmenter.segment(
-                image, self.background.image, self.base_px, photometry=photometry,
+                image, model.image, self.base_px, photometry=photometry,
                 search_px=self._search_points(predicted_px),
-                prepared=self.background.prepared,
+                prepared=model.prepared,
             )
-            if extra:
-                seg = dataclasses.replace(seg, flags=seg.flags | extra)
+        lines = self._catheter_lines(seg)
         if photometry.fitted and not seg.flags & NOT_SEGMENTED:
+            # The frame's shift to a few hundredths of a pixel, on the background around
+            # the catheter: what in_camera_frame takes out of the points.
+            clearance = s.catheter_clearance_px
+            photometry = fit_shift(
+                image, model.shift_samples, photometry,
+                shift_grid_mask(model.shift_samples, [(p, w + clearance) for p, w in lines]),
+            )
+            seg = dataclasses.replace(seg, flags=seg.flags | extra, photometry=photometry)
             self.noise_gray = (
                 photometry.sigma_gray if self.noise_gray is None
                 else 0.9 * self.noise_gray + 0.1 * photometry.sigma_gray
             )
-            self.background.update(image, photometry, self._catheter_lines(seg))
+            model.update(image, photometry, lines)
+        elif extra:
+            seg = dataclasses.replace(seg, flags=seg.flags | extra)
         if seg.centreline_px.shape[0] >= 2:
             self.last = seg
         elif seg.flags & SegmentationFlag.NO_CATHETER:
             self.last = None
         return seg
+
+    def in_camera_frame(self, seg: ViewSegmentation) -> ViewSegmentation:
+        """A segmentation of this camera moved from the frame's pixels into those of the
+        background image it was given (where the rig's calibration holds).
+
+        The frame's shift is the background model's re-registration (``shift_px``) plus
+        the frame's own shift from the model (a vibration) where it stands out of its
+        uncertainty (:func:`tracker.vision.photometry.significant_shift`), whose covariance
+        is then added to the points'. A shift of the whole image is a small rotation of the
+        camera about its centre: to first order the points are then where the calibrated
+        camera sees the catheter.
+        """
+        photometry = seg.photometry
+        own = np.zeros(2) if photometry is None else significant_shift(photometry)
+        total = self.background.shift_px + own
+        if not (total.any()):
+            return seg
+        cov = photometry.shift_cov_px2 if own.any() else None
+        return shifted_back(seg, total, cov)
 
     # ------------------------------------------------------------------ steps
     def _search_points(self, predicted_px: Array | None) -> Array | None:

@@ -379,8 +379,10 @@ class PairSegmenter:
             )
         if predicted_px is None:
             predicted_px = (None,) * len(self.cameras)
+        # Each camera's points moved out of its frame's shift (a vibration, a re-registered
+        # move) into the pixels where the rig's calibration holds.
         views = tuple(
-            camera.segment(image, predicted)
+            camera.in_camera_frame(camera.segment(image, predicted))
             for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True)
         )
         return combine_views(self.segmenter, views, self.rig)

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import cv2
@@ -155,6 +155,32 @@ class ViewSegmentation:
     @property
     def tip_found(self) -> bool:
         return math.isfinite(self.tip_px[0]) and math.isfinite(self.tip_px[1])
+
+
+def shifted_back(
+    seg: ViewSegmentation, shift_px: Array, shift_cov_px2: Array | None = None
+) -> ViewSegmentation:
+    """The segmentation of a frame whose whole image was shifted by ``shift_px`` (x, y),
+    px, with every point moved back by it (into the pixels of the unshifted image).
+
+    ``shift_cov_px2`` (2, 2), the shift's covariance if it was measured, is added to every
+    point's (the points share the shift's error).
+    """
+    shift = np.asarray(shift_px, float)
+    extra = np.zeros((2, 2)) if shift_cov_px2 is None else np.asarray(shift_cov_px2, float)
+    return replace(
+        seg,
+        base_px=seg.base_px - shift,
+        base_cov=seg.base_cov + extra,
+        tip_px=seg.tip_px - shift,
+        tip_cov=seg.tip_cov + extra,
+        markers_px=seg.markers_px - shift,
+        markers_cov=seg.markers_cov + extra,
+        centreline_px=seg.centreline_px - shift,
+        bands_px=seg.bands_px - shift,
+        tip_band_px=seg.tip_band_px - shift,
+        tip_band_cov=seg.tip_band_cov + extra,
+    )
 
 
 def frame_points(seg: ViewSegmentation) -> tuple[Array, Array, Array]:
