@@ -24,6 +24,11 @@ deviation's (below):
 - the estimate is the circular mean of the posterior and its std the root of the posterior
   variance (plus a cell's own ``h^2 / 12``); 2,048 cells by default (0.18 degree cells).
 
+The per-cell arithmetic (each group's d^2 on every cell, the likelihood, the posterior and its
+moments, the predict's end and the deviation's update) is compiled
+(:mod:`tracker.estimators.grid_kernels`, loaded or compiled when a filter is made); the FFTs
+and the exponentials stay in scipy and numpy.
+
 Likelihoods are evaluated up to a constant (the Gaussians' normalisation): the posterior is
 normalised over the cells, where it cancels.
 
@@ -40,17 +45,11 @@ import math
 
 import numpy as np
 import scipy.fft
-from scipy.linalg import lapack
 
 from models.catheter import Catheter
-from tracker.estimators._linalg import block_index, cholesky, spd_inverse
-from tracker.estimators.deviation import (
-    ShapeExpansion,
-    deviation_decay,
-    deviation_jacobian,
-    deviation_prior,
-    quadratic_moments,
-)
+from tracker.estimators import grid_kernels
+from tracker.estimators._linalg import cholesky, spd_inverse
+from tracker.estimators.deviation import ShapeExpansion, deviation_decay, deviation_prior
 from tracker.estimators.measurement import (
     FrameGroups,
     jump_probability,
@@ -113,19 +112,14 @@ class GridFilter:
         self.cell_rad = 2 * math.pi / self.cells
         self.angles = -math.pi + self.cell_rad * np.arange(self.cells)
         self._k2 = np.arange(self.cells // 2 + 1, dtype=float) ** 2
-        # The rows every group's model-frame residual is affine in, for every cell: cos and sin
-        # of its angle and 1 (fixed), its deviation mean (``mu`` is a view of rows 3 and 4,
-        # so that the likelihood reads it in place) and the mean's quadratic terms (filled
-        # per frame): [cos, sin, 1, expansion_basis(mu)].
-        self._basis = np.empty((8, self.cells))
-        self._basis[0] = np.cos(self.angles)
-        self._basis[1] = np.sin(self.angles)
-        self._basis[2] = 1.0
-        self.mu = self._basis[3:5]
+        # The fixed rows of every cell's basis [cos, sin, 1, expansion_basis(mu)].
+        self._cos = np.cos(self.angles)
+        self._sin = np.sin(self.angles)
+        self.mu = np.zeros((2, self.cells))
         # What the prediction convolves: p and, moment matching the means, p mu.
         self._stack = np.empty((3, self.cells))
-        self._spread = np.empty(self.cells)
         self._expansion = ShapeExpansion(catheter)
+        grid_kernels.warm_up()
         self.reset()
 
     def reset(self) -> None:
@@ -133,6 +127,9 @@ class GridFilter:
         s = self.settings
         self.p = np.full(self.cells, 1.0 / self.cells)
         self._deviation = s.estimates_deviation
+        self._mixture = {
+            dim: _mixture_constants(dim, s.outlier_probability, s.outlier_scale) for dim in (2, 3)
+        }
         self.mu[:] = 0.0
         self.Sigma = np.diag(deviation_prior(np.zeros((1, 3)), s.joint_error_mm, 0.0)[0])
         self._pending_variance = 0.0
@@ -150,18 +147,10 @@ class GridFilter:
     def moments(self) -> tuple[float, float]:
         """Circular mean and std of the posterior, rad."""
         if self._moments is None:
-            p = self.p
-            c, s = (self._basis[:2] @ p).tolist()
-            mean = math.atan2(s, c)
-            # The cells' offsets from the mean, wrapped to [-pi, pi]: only those more than
-            # half a turn away wrap, a run at one end of the grid.
-            spread = np.subtract(self.angles, mean, out=self._spread)
-            if mean >= 0.0:
-                spread[: math.ceil(mean / self.cell_rad)] += _TWO_PI
-            else:
-                spread[math.floor((_TWO_PI + mean) / self.cell_rad) + 1 :] -= _TWO_PI
-            var = float(p @ np.square(spread, out=spread)) + self.cell_rad**2 / 12.0
-            self._moments = (float(wrap(mean)), math.sqrt(var))
+            mean, var = grid_kernels.circular_moments(
+                self.p, self._cos, self._sin, self.angles, self.cell_rad
+            )
+            self._moments = (float(wrap(mean)), math.sqrt(var + self.cell_rad**2 / 12.0))
         return self._moments
 
     def _cell(self, angle: float) -> int:
@@ -204,10 +193,10 @@ class GridFilter:
             three_d = isinstance(groups, FrameGroups)
             present = groups.present[0]
             if three_d:
-                d2, log_lik, update = self._likelihood_3d(groups, Q, dt, present, joints[0])
+                d2, update = self._likelihood_3d(groups, Q, dt, present, joints[0])
             else:
-                d2, log_lik, update = self._likelihood_views(groups)
-            self._multiply(log_lik)
+                d2, update = self._squared_residuals_views(groups), None
+            self._multiply(d2, groups.dim)
             mean, _ = self.moments()
             # Which of the present groups the posterior mean's cell explains (no outliers).
             explained = d2[:, self._cell(mean)] <= outlier_threshold(
@@ -240,19 +229,21 @@ class GridFilter:
             informative_radius_mm=radius, rejected_outliers=self._rejected,
         )  # fmt: skip
 
-    def _multiply(self, log_lik: Array) -> None:
-        """Posterior = prior x likelihood, normalised (``log_lik`` up to a constant; shifted
-        in place)."""
-        log_lik -= log_lik.max()
-        p = np.exp(log_lik)
-        p *= self.p
-        total = float(p.sum())
-        if not (total > 1e-250 and math.isfinite(total)):
+    def _multiply(self, d2: Array, dim: int) -> None:
+        """Posterior = prior x the frame's likelihood, normalised, from the groups' d^2 (G,
+        N) of dimension ``dim``."""
+        shrink, scale2, ratio, mixture = self._mixture[dim]
+        factors = grid_kernels.exponents(d2, shrink, scale2, mixture)
+        p, ok = grid_kernels.posterior(self.p, np.exp(factors, out=factors), ratio, mixture)
+        if not ok:
             # The likelihood's peak lies where the prior has (numerically) no mass: in logs.
-            log_post = np.log(np.maximum(self.p, 1e-300)) + log_lik
+            s = self.settings
+            log_lik = np.add.reduce(
+                mixture_log_likelihood(d2, dim, s.outlier_probability, s.outlier_scale), axis=0
+            )
+            log_post = np.log(np.maximum(self.p, 1e-300)) + (log_lik - log_lik.max())
             p = np.exp(log_post - log_post.max())
-            total = float(p.sum())
-        p /= total
+            p /= float(p.sum())
         self.p = p
         self._moments = None
 
@@ -262,12 +253,15 @@ class GridFilter:
         # A variance much below a cell's only blurs within it: it accumulates until it shows.
         variance += self._pending_variance
         self._pending_variance = 0.0
-        p, means = self.p, None
+        p, means, blurred = self.p, self.mu, False
+        blur_means = False
         if variance > 0.01 * self.cell_rad**2:
             # The wrapped normal's Fourier coefficients at the integer frequencies of the grid.
-            # Beyond exp(-746) the coefficients are exactly 0.0 in doubles: not computed (the
-            # inverse transform pads with zeros).
-            used = min(self._k2.size, int(math.sqrt(1492.0 / variance)) + 1)
+            # Those below exp(-650) (about 1e-282) are not computed (the inverse transform pads with
+            # zeros): what they add is far below what a sum of the posterior's order can
+            # hold, and near exp(-708) they and their products turn subnormal, each
+            # operation on which costs a hundred ordinary ones.
+            used = min(self._k2.size, int(math.sqrt(1300.0 / variance)) + 1)
             # The deviation means follow by moment matching (convolving p mu with p), unless
             # the blur stays within a few cells.
             blur_means = self._deviation and variance > (2 * self.cell_rad) ** 2
@@ -276,147 +270,69 @@ class GridFilter:
             if blur_means:
                 np.multiply(p, self.mu, out=stack[1:])
             spectrum = scipy.fft.rfft(stack)[:, :used]
-            spectrum *= np.exp(-0.5 * variance * self._k2[:used])
-            blurred = scipy.fft.irfft(spectrum, self.cells, overwrite_x=True)
-            p = np.maximum(blurred[0], 0.0, out=blurred[0])
+            grid_kernels.attenuate(spectrum, variance, self._k2)
+            convolved = scipy.fft.irfft(spectrum, self.cells, overwrite_x=True)
+            p, blurred = convolved[0], True
             if blur_means:
-                means = blurred[1:]
+                means = convolved[1:]
         else:
             self._pending_variance = variance
-        # Normalised and mixed with the uniform density of a jump: p' = scale p + jump / N. A
-        # jump lands anywhere with the deviation's prior mean (zero), so the means become
-        # ``means`` (p mu, convolved where p is) over p' / scale (the 1e-300 keeps that
-        # finite where p is 0 and nothing jumps).
-        scale = (1.0 - jump) / float(p.sum())
-        if scale == 0.0:  # a certain jump
-            self.p = np.full(self.cells, 1.0 / self.cells)
-            self.mu[:] = 0.0
-        elif means is None and jump == 0.0:
-            self.p = p * scale
-        else:
-            if means is None:
-                means = p * self.mu
-            weight = p + max(jump / self.cells / scale, 1e-300)
-            np.divide(means, weight, out=self.mu)
-            self.p = weight * scale
+        # Clipped where the truncated series rings below zero, normalised and mixed with the
+        # uniform density of a jump, the deviation means moment matched.
+        self.p = grid_kernels.mix_in_jump(p, means, blur_means, self.mu, jump, blurred)
         self._moments = None
 
     def _likelihood_3d(self, groups: FrameGroups, Q: float, dt: float, present: Array, q_r: float):
-        """Per present group and cell d^2 (G', N), the frame's log-likelihood (N,) up to a
-        constant, and the Kalman update of the deviation means given which of the present
-        groups are inliers (None without a deviation)."""
+        """Per present group and cell d^2 (G', N), and the Kalman update of the deviation
+        means given which of the present groups are inliers (None without a deviation)."""
         s = self.settings
         M = model_error_covariance(
             groups, s.joint_error_white_mm, s.velocity_relative_error, np.array([Q]),
             np.array([dt]),
         )[0]  # fmt: skip
-        take = slice(None) if present.all() else present  # views when every group is there
-        y, c, JK = groups.y[0, take], groups.c[0, take], groups.JK[0, take]
-        S = groups.R_bar[0, take] + M[take]
-        G = y.shape[0]
-        rows = 8 if self._deviation else 3
-        basis = self._basis[:rows]
-        if self._deviation:
-            # The deviation enters with its Jacobian at the most probable cell's deviation, and
-            # its quadratic term with the mean and spread of the shared covariance.
-            mu = self.mu
-            J = deviation_jacobian(JK[..., :2], JK[..., 2:], mu[:, int(np.argmax(self.p))])
-            bias, spread = quadratic_moments(JK[..., 2:], self.Sigma)
-            noise = S + spread  # all but the linear deviation term
-            S = noise + J @ self.Sigma @ J.mT
-            c = c + bias
-            np.multiply(mu[0], mu, out=basis[5:7])
-            np.multiply(mu[1], mu[1], out=basis[7])
-        # The prediction error c + JK expansion_basis(mu) - Rz(q_r + delta)^T y (minus the
-        # residual, so that JK enters as it is) of every group and cell is C basis, C (G', 3,
-        # rows): with (u_x, u_y) the horizontal part of Rz(q_r)^T y, Rz(delta)^T u is
-        # u cos(delta) + (u_y, -u_x) sin(delta).
-        cq, sq = math.cos(q_r), math.sin(q_r)
-        affine = []
-        for (y_x, y_y, y_z), (c_x, c_y, c_z) in zip(y.tolist(), c.tolist(), strict=True):
-            u_x, u_y = cq * y_x + sq * y_y, cq * y_y - sq * y_x
-            affine += (-u_x, -u_y, c_x, -u_y, u_x, c_y, 0.0, 0.0, c_z - y_z)
-        C = np.array(affine).reshape(G, 3, 3)
-        if self._deviation:
-            C = np.concatenate((C, JK), axis=-1)
-        # Whitened by each group's Cholesky factor L, d^2 = |L^-1 C basis|^2.
-        white = (_inverse_cholesky(S) @ C).reshape(3 * G, rows) @ basis
-        np.square(white, out=white)
-        d2 = np.add.reduce(white.reshape(G, 3, -1), axis=1)
-        terms = mixture_log_likelihood(d2, 3, s.outlier_probability, s.outlier_scale)
-        log_lik = np.add.reduce(terms, axis=0)
+        # The kernels take C-contiguous arrays (one compiled version); y is a view.
+        C, A, J, noise, S, ok = grid_kernels.group_terms(
+            np.ascontiguousarray(groups.y[0]), np.ascontiguousarray(groups.c[0]),
+            np.ascontiguousarray(groups.JK[0]), np.ascontiguousarray(groups.R_bar[0]),
+            np.ascontiguousarray(M),
+            np.ascontiguousarray(present), q_r, self.Sigma, self.p, self.mu, self._deviation,
+        )  # fmt: skip
+        if not ok:
+            # A covariance that is not positive definite: the documented jitter of cholesky.
+            A = np.linalg.inv(cholesky(S)[0]) @ C
+        d2 = grid_kernels.squared_residuals(A, self._cos, self._sin, self.mu)
         if not self._deviation:
-            return d2, log_lik, None
+            return d2, None
 
         def update(inlier: Array) -> None:
-            self._update_deviation(J, noise, inlier, C, basis)
+            self.Sigma = grid_kernels.update_deviation(
+                J, noise, inlier, C, self.Sigma, self._cos, self._sin, self.mu
+            )
 
-        return d2, log_lik, update
+        return d2, update
 
-    def _likelihood_views(self, groups):
-        """Per point and cell d^2 (G, N) and the frame's log-likelihood (N,) up to a
-        constant, single views (no deviation update: None)."""
-        s = self.settings
+    def _squared_residuals_views(self, groups) -> Array:
+        """Per point and cell d^2 (G, N), single views."""
         W = spd_inverse(groups.R[0])
         predicted = groups.predict(np.array([0]), self.angles[None, :, None])[0]
         residual = groups.z[0][None] - predicted  # (N, G, 2)
         d2 = np.einsum("ngi,gij,ngj->gn", residual, W, residual)
-        terms = mixture_log_likelihood(d2, 2, s.outlier_probability, s.outlier_scale)
-        return d2, terms.sum(axis=0), None
-
-    def _update_deviation(
-        self, J: Array, noise: Array, inlier: Array, C: Array, basis: Array
-    ) -> None:
-        """Kalman update of every cell's deviation mean with the inlying groups (one gain,
-        with the Jacobian J (G', 3, 2) at the most probable cell's deviation; ``noise``: the
-        groups' covariances but for that linear deviation term); the prediction errors of
-        the cells are ``C basis`` (C (G', 3, k) and basis (k, N))."""
-        take = slice(None) if inlier.all() else inlier
-        H = J[take].reshape(-1, 2)
-        m = H.shape[0]
-        HSigma = H @ self.Sigma
-        S = HSigma @ H.T
-        S.reshape(-1)[block_index(m // 3, 3)] += noise[take].reshape(-1)
-        _, _, solution, info = lapack.dgesv(S, HSigma)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"singular innovation covariance of the deviation ({info})")
-        gain = solution.T  # (2, m)
-        self.mu -= (gain @ C[take].reshape(m, -1)) @ basis
-        (s00, s01), (s10, s11) = (self.Sigma - gain @ HSigma).tolist()
-        s01 = 0.5 * (s01 + s10)
-        self.Sigma = np.array([[s00, s01], [s01, s11]])
+        return np.ascontiguousarray(d2)
 
 
-def _inverse_cholesky(S: Array) -> Array:
-    """``L^-1`` of the lower Cholesky factors L of G covariances (G, 3, 3): (G, 3, 3).
-
-    The few 3 x 3 factors and inverses are computed in floats (LAPACK's order of operations);
-    a covariance that is not positive definite goes through :func:`cholesky` and its jitter.
-    """
-    inverses = []
-    for (a11, _, _), (a21, a22, _), (a31, a32, a33) in S.tolist():
-        d1 = a11
-        if not d1 > 0.0:
-            break
-        l11 = math.sqrt(d1)
-        l21, l31 = a21 / l11, a31 / l11
-        d2 = a22 - l21 * l21
-        if not d2 > 0.0:
-            break
-        l22 = math.sqrt(d2)
-        l32 = (a32 - l31 * l21) / l22
-        d3 = a33 - l31 * l31 - l32 * l32
-        if not (d3 > 0.0 and math.isfinite(d3)):
-            break
-        l33 = math.sqrt(d3)
-        m11, m22, m33 = 1.0 / l11, 1.0 / l22, 1.0 / l33
-        m21 = -(l21 * m11) * m22
-        m32 = -(l32 * m22) * m33
-        m31 = -(l31 * m11 + l32 * m21) * m33
-        inverses += (m11, 0.0, 0.0, m21, m22, 0.0, m31, m32, m33)
-    else:
-        return np.array(inverses).reshape(S.shape)
-    return np.linalg.inv(cholesky(S)[0])
+def _mixture_constants(
+    dim: int, outlier_probability: float, outlier_scale: float
+) -> tuple[float, float, float, bool]:
+    """What :func:`grid_kernels.exponents` and :func:`grid_kernels.posterior` take for the
+    heavy-tailed likelihood of a group of dimension ``dim``
+    (:func:`~tracker.estimators.measurement.mixture_log_likelihood`): ``1 - s^-2``,
+    ``s^2``, the inlier component's weight over the outlier's ``(1 - p) / (p s^-dim)`` and
+    whether there is an outlier component at all (the Gaussian without)."""
+    if outlier_probability <= 0.0:
+        return 0.0, 1.0, 0.0, False
+    log_outlier = math.log(outlier_probability) - dim * math.log(outlier_scale)
+    ratio = (1.0 - outlier_probability) / math.exp(log_outlier)
+    return 1.0 - outlier_scale**-2, outlier_scale**2, ratio, True
 
 
 __all__ = ["DEFAULT_CELLS", "GridFilter"]
