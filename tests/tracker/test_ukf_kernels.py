@@ -192,8 +192,10 @@ def test_frame_radius_and_model_error():
                         for t in range(B)])  # fmt: skip
     np.testing.assert_allclose(radius, expected, rtol=1e-14)
     JK = rng.normal(size=(B, G, 3, 5))
-    u_norm, rate_var = rng.uniform(0, 5, B), rng.uniform(0, 1, B)
-    M = K.model_error(JK, 0.05, True, c, u_norm, 0.1, rate_var)
+    u_norm, process_var = rng.uniform(0, 5, B), rng.uniform(0, 1e-4, B)
+    dt = np.array([0.05, 0.0, 0.02])  # no interval: no torsion change term
+    rate_var = np.where(dt > 0, process_var / np.where(dt > 0, dt, 1.0) ** 2, 0.0)
+    M = K.model_error(JK, 0.05, True, c, u_norm, 0.1, process_var, dt)
     for t in range(B):
         for g in range(G):
             J = JK[t, g, :, :2]
@@ -203,7 +205,7 @@ def test_frame_radius_and_model_error():
                 expected = expected + (0.1 * u_norm[t]) ** 2 * np.eye(3)
                 expected = expected + rate_var[t] * np.outer(tangent, tangent)
             np.testing.assert_allclose(M[t, g], expected, rtol=1e-12, atol=1e-15)
-    without = K.model_error(JK, 0.05, False, c, u_norm, 0.1, rate_var)
+    without = K.model_error(JK, 0.05, False, c, u_norm, 0.1, process_var, dt)
     np.testing.assert_allclose(without[:, -1], 0.05**2 * JK[:, -1, :, :2] @ np.swapaxes(
         JK[:, -1, :, :2], -1, -2), rtol=1e-12)  # fmt: skip
 

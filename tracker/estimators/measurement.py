@@ -528,12 +528,11 @@ def model_error_covariance(
     dt_s : array, shape (B,)
         The frame interval, s.
     """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rate_var = np.where(dt_s > 0, process_var_rad2 / dt_s**2, 0.0)
     return ukf_kernels.model_error(
         np.ascontiguousarray(groups.JK), float(white_mm), groups.has_velocity_group,
         np.ascontiguousarray(groups.c), np.ascontiguousarray(groups.u_norm_mm_s, dtype=float),
-        float(velocity_relative_error), rate_var,
+        float(velocity_relative_error), np.ascontiguousarray(process_var_rad2, dtype=float),
+        np.ascontiguousarray(dt_s, dtype=float),
     )  # fmt: skip
 
 

@@ -268,7 +268,7 @@ class FilterBank:
         running = self.initialised.copy()
         # The process model of the running trials' hypotheses (ukf_rules.begin_step); the
         # predicted covariances' factors are kept for the update's sigma points.
-        flags, dt, turn, Q, prior, ok, self._factor = ukf_rules.begin_step(
+        flags, dt, turn, Q, prior, ok, all_ok, self._factor = ukf_rules.begin_step(
             np.ascontiguousarray(time_s, dtype=float), np.ascontiguousarray(q, dtype=float),
             self.time_s, self.q,
             self._no_partial if partial is None else np.ascontiguousarray(partial, dtype=bool),
@@ -278,7 +278,7 @@ class FilterBank:
             self._deviation_index, self._rate_index, _FLAGS,
         )  # fmt: skip
         self._factor_ok = ok
-        if not ok.all():
+        if not all_ok:
             self._repair(~ok, Q, flags)
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
@@ -357,7 +357,7 @@ class FilterBank:
         G, d = present.shape[1], frame.dim
         low, high = s.noise_scale_bounds
         # The report follows each trial's leading hypothesis.
-        spawn, first, row = ukf_rules.apply_update(
+        spawn, first, row, closed_form = ukf_rules.apply_update(
             update.b, update.h, update.status, update.nis, update.dof, update.rejected,
             update.fused_tip, self.active, self.log_weight, running, all_wide, measured,
             three_d, flags, out.nis, out.nis_dof, self.rejected, self.bad_run, fused_tip,
@@ -366,7 +366,7 @@ class FilterBank:
         )  # fmt: skip
         if B == 1 and row[0] >= 0:
             out.innovation[0] = update.innovation[row[0]]
-        if three_d and (first.any() or all_wide.any() or spawn.any()):
+        if closed_form:
             # Data the leading hypothesis does not explain, in part or as a whole: weigh a
             # hypothesis started from the frame alone against it.
             jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
@@ -568,7 +568,10 @@ class FilterBank:
         if self.B == 1:
             # The fused residuals of each shown update (the inlying groups').
             rho_g = rho.reshape(r, G, d)
-            innovation = [rho_g[i, inlier[i]].ravel() if shown[i] else None for i in range(r)]
+            if r == 1:
+                innovation = [rho_g[0, inlier[0]].ravel() if shown[0] else None]
+            else:
+                innovation = [rho_g[i, inlier[i]].ravel() if shown[i] else None for i in range(r)]
         return UpdateResult(
             b=b, h=h, status=status, nis=nis, dof=dof, rejected=rejected, inlier=inlier,
             fused_tip=inlier[:, 0] & frame.is_tip_group(0), innovation=innovation,

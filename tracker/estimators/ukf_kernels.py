@@ -643,12 +643,12 @@ def horizontal_radius(c, present, n_positions):
 
 
 @numba.njit(cache=True, nogil=True)
-def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, rate_var):
+def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, process_var, dt):
     """The white model-error covariance ``white^2 J J^T`` of every group (B, G, 3, 3), plus on
     the velocity group (the last, with ``has_velocity``) the relative error of the modelled
     velocity, ``(relative_error |u|)^2 I``, and the torsion change over the interval,
-    ``rate_var t t^T`` with t the tip's tangent ``e_z x c_tip`` (``rate_var`` (B,),
-    rad^2/s^2)."""
+    ``process_var / dt^2 t t^T`` with t the tip's tangent ``e_z x c_tip`` (``process_var``
+    (B,), rad^2; ``dt`` (B,), s; none where dt is not positive)."""
     B, G = JK.shape[0], JK.shape[1]
     M = np.empty((B, G, 3, 3))
     w2 = white_mm * white_mm
@@ -659,12 +659,13 @@ def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, rate_var)
                     M[t, g, a, b] = w2 * (JK[t, g, a, 0] * JK[t, g, b, 0]
                                           + JK[t, g, a, 1] * JK[t, g, b, 1])  # fmt: skip
         if has_velocity:
+            rate_var = process_var[t] / dt[t] ** 2 if dt[t] > 0 else 0.0
             v = relative_error * u_norm[t]
             tangent = (-c[t, 0, 1], c[t, 0, 0], 0.0)
             for a in range(3):
                 M[t, G - 1, a, a] += v * v
                 for b in range(3):
-                    M[t, G - 1, a, b] += rate_var[t] * tangent[a] * tangent[b]
+                    M[t, G - 1, a, b] += rate_var * tangent[a] * tangent[b]
     return M
 
 
@@ -697,7 +698,9 @@ def warm_up() -> None:
             mixture_rows(np.ones(1), x, P, x, P)
             present = np.ones((1, G), dtype=bool)
             horizontal_radius(c, present, G)
-            model_error(np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1))
+            model_error(
+                np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1)
+            )
 
 
 __all__ = [

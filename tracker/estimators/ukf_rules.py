@@ -354,6 +354,8 @@ def begin_step(
         The deviation's prior variance at the frame's joints, mm^2.
     ok : bool array (B, H)
         Hypotheses whose prediction is usable (False where predicted and not: to repair).
+    all_ok : bool
+        Every hypothesis' prediction is usable.
     L : array (B, H, n, n)
         Lower Cholesky factors of the predicted covariances (where predicted and ok).
     """
@@ -364,6 +366,7 @@ def begin_step(
     Q = np.empty(B)
     prior = np.empty((B, 2))
     ok = np.ones((B, H), dtype=np.bool_)
+    all_ok = True
     L = np.zeros((B, H, n, n))
     work = np.empty((n, n))
     for t in range(B):
@@ -397,7 +400,8 @@ def begin_step(
                     x[t, h], P[t, h], Q[t], decay, prior[t, 0], prior[t, 1], dt[t], deviation,
                     rate, rate_noise, max_variance, L[t, h], work,
                 )  # fmt: skip
-    return flags, dt, turn, Q, prior, ok, L
+                all_ok = all_ok and ok[t, h]
+    return flags, dt, turn, Q, prior, ok, all_ok, L
 
 
 @numba.njit(cache=True, nogil=True)
@@ -475,10 +479,11 @@ def apply_update(
     with ``adapt`` the noise scale (a forgetting average of NIS/dof, each ratio capped at
     its gate ``gates[dof]`` and at 10, within ``[low, high]``).
 
-    Returns ``(spawn, first, row)``: the trials whose leading hypothesis rejected data (3-D
-    frames: a hypothesis from the frame alone is weighed against it), the trials the frame
-    may start (not running, measured; 3-D frames), and the update's row of each trial (-1:
-    none reported).
+    Returns ``(spawn, first, row, closed_form)``: the trials whose leading hypothesis
+    rejected data (3-D frames: a hypothesis from the frame alone is weighed against it), the
+    trials the frame may start (not running, measured; 3-D frames), the update's row of each
+    trial (-1: none reported), and whether any trial needs the frame's closed form (to
+    start, restart or spawn: 3-D frames).
     """
     B = active.shape[0]
     lead = leading(active, log_weight)
@@ -515,7 +520,10 @@ def apply_update(
             ratio = min(min(nis[i], gates[k]), 10.0 * k) / k
             value = noise_scale[t] * (forgetting + (1.0 - forgetting) * ratio)
             noise_scale[t] = min(max(value, low), high)
-    return spawn, first, row
+    closed_form = False
+    for t in range(B):
+        closed_form = closed_form or first[t] or spawn[t] or (three_d and all_wide[t])
+    return spawn, first, row, closed_form
 
 
 @numba.njit(cache=True, nogil=True)
@@ -634,7 +642,7 @@ def warm_up() -> None:
         P = np.broadcast_to(np.eye(n), (B, H, n, n)).copy()
         active = np.ones((B, H), dtype=bool)
         running = np.ones(B, dtype=bool)
-        flags, dt, turn, Q, prior, ok, L = begin_step(
+        flags, dt, turn, Q, prior, ok, all_ok, L = begin_step(
             np.zeros(B), np.zeros((B, 3)), np.full(B, np.nan), np.zeros((B, 3)),
             np.zeros(B, dtype=bool), x, P, active, running, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0,
             1.0, 1.0, 1 if n > 2 else -1, 1 if n == 4 else -1, flag,
