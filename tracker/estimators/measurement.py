@@ -375,6 +375,11 @@ def rotation_invariant(A: Array) -> Array:
     return (A.reshape(A.shape[:-2] + (9,)) @ _ROTATION_AVERAGE).reshape(A.shape)
 
 
+# Placeholders of absent tips or markers for the assembling kernel (one trial, unused).
+_NO_POINTS, _NO_MARKERS = np.zeros((1, 3)), np.zeros((1, 1, 3))
+_NO_COVARIANCES, _NO_MARKER_COVARIANCES = np.zeros((1, 3, 3)), np.zeros((1, 1, 3, 3))
+
+
 def _finite_rows(a: Array, axes: tuple[int, ...]) -> Array:
     return np.isfinite(a).all(axis=axes)
 
@@ -414,31 +419,16 @@ def assemble_expanded(
     B, P = c.shape[:2]
     has_v = velocity is not None
     G = P + has_v
-    # Each group's vector and covariance side by side: one finiteness test for both.
-    data = np.empty((B, G, 12))
-    y, R = data[..., :3], data[..., 3:].reshape(B, G, 3, 3)
     has_tip = tip is not None and tip_cov is not None
     has_markers = markers is not None and markers_cov is not None and P > 1
-    if has_v or not (has_tip and has_markers):
-        # Placeholders for the groups not written below.
-        y[:] = 0.0
-        R[:] = _EYE3
-    if has_tip:
-        y[:, 0] = tip
-        R[:, 0] = tip_cov
-    if has_markers:
-        y[:, 1:P] = markers
-        R[:, 1:P] = markers_cov
-    present = np.isfinite(data).all(-1)
-    if not has_tip:
-        present[:, 0] = False
-    if not has_markers:
-        present[:, 1:P] = False
-    if not present[:, :P].all():
-        absent = ~present
-        absent[:, P:] = False
-        y[absent] = 0.0
-        R[absent] = _EYE3
+    contiguous = np.ascontiguousarray
+    y, R, R_bar, present = ukf_kernels.assemble_positions(
+        contiguous(tip, dtype=float) if has_tip else _NO_POINTS,
+        contiguous(tip_cov, dtype=float) if has_tip else _NO_COVARIANCES,
+        contiguous(markers, dtype=float) if has_markers else _NO_MARKERS,
+        contiguous(markers_cov, dtype=float) if has_markers else _NO_MARKER_COVARIANCES,
+        B, P, G, has_tip, has_markers,
+    )  # fmt: skip
     C = c
     K_bar = np.zeros((B, 3, 3))
     u_norm = np.zeros(B)
@@ -471,12 +461,13 @@ def assemble_expanded(
             K_bar = rotation_invariant(gain)
             y[ok, -1] = v_bar[ok]
             R[ok, -1] = cov_bar[ok]
+            R_bar[:, -1] = rotation_invariant(R[:, -1])
             C[ok, -1] = (u - (K_bar @ c_tip[..., None])[..., 0])[ok]
             JK[ok, -1] = -(K_bar @ JK[:, 0])[ok]
             u_norm = np.where(ok, np.linalg.norm(u, axis=-1), 0.0)
     return FrameGroups(
         q=np.asarray(q, dtype=float), y=y, c=C, R=R, JK=JK, present=present,
-        R_bar=rotation_invariant(R), n_positions=P,
+        R_bar=R_bar, n_positions=P,
         has_velocity_group=has_v, K_bar=K_bar, u_norm_mm_s=u_norm,
     )  # fmt: skip
 

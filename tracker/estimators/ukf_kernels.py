@@ -669,6 +669,72 @@ def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, process_v
     return M
 
 
+@numba.njit(cache=True, nogil=True)
+def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has_markers):
+    """The position groups of B trials' frames: each group's vector and covariance, its
+    rotation-invariant noise and whether it is present (finite vector and covariance).
+
+    Parameters
+    ----------
+    tip, tip_cov : arrays (B, 3), (B, 3, 3)
+        Used with ``has_tip``.
+    markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3)
+        Used with ``has_markers`` (NaN rows: markers not found).
+    B, P, G : int
+        Trials, position groups (the tip and the markers) and groups (G > P: a velocity
+        group follows, filled by the caller).
+
+    Returns
+    -------
+    y : array (B, G, 3), R, R_bar : arrays (B, G, 3, 3), present : bool array (B, G)
+        Absent groups hold the placeholders 0 and I. R_bar is R's part invariant under
+        rotations about z: ``diag((R_xx + R_yy) / 2, (R_xx + R_yy) / 2, R_zz)`` plus the
+        antisymmetric horizontal part (``rotation_invariant``).
+    """
+    y = np.zeros((B, G, 3))
+    R = np.zeros((B, G, 3, 3))
+    R_bar = np.zeros((B, G, 3, 3))
+    present = np.zeros((B, G), dtype=np.bool_)
+    for t in range(B):
+        for g in range(G):
+            source = -1
+            if g == 0 and has_tip:
+                source = 0
+            elif 0 < g < P and has_markers:
+                source = g
+            finite = source >= 0
+            for a in range(3):
+                v = 0.0
+                if source == 0:
+                    v = tip[t, a]
+                elif source > 0:
+                    v = markers[t, source - 1, a]
+                y[t, g, a] = v
+                finite = finite and math.isfinite(v)
+                for b in range(3):
+                    w = 0.0
+                    if source == 0:
+                        w = tip_cov[t, a, b]
+                    elif source > 0:
+                        w = markers_cov[t, source - 1, a, b]
+                    R[t, g, a, b] = w
+                    finite = finite and math.isfinite(w)
+            present[t, g] = finite
+            if not finite:
+                for a in range(3):
+                    y[t, g, a] = 0.0
+                    for b in range(3):
+                        R[t, g, a, b] = 1.0 if a == b else 0.0
+            A = R[t, g]
+            horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
+            skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
+            R_bar[t, g, 0, 0] = R_bar[t, g, 1, 1] = horizontal
+            R_bar[t, g, 0, 1] = skew
+            R_bar[t, g, 1, 0] = -skew
+            R_bar[t, g, 2, 2] = A[2, 2]
+    return y, R, R_bar, present
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
     for n in (1, 3, 4):
@@ -698,6 +764,10 @@ def warm_up() -> None:
             mixture_rows(np.ones(1), x, P, x, P)
             present = np.ones((1, G), dtype=bool)
             horizontal_radius(c, present, G)
+            for has in (True, False):
+                assemble_positions(
+                    c[:, 0], eye[:, 0], c[:, 1:], eye[:, 1:], 1, G, G + 1, has, has
+                )
             model_error(
                 np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1)
             )
@@ -705,6 +775,7 @@ def warm_up() -> None:
 
 __all__ = [
     "cap_rows",
+    "assemble_positions",
     "fuse_rows",
     "horizontal_radius",
     "model_error",
