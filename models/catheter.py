@@ -411,11 +411,7 @@ class Catheter:
         p = integrals[0]  # x + i z of p_1 and p_2 at every limit; last: exp(i theta_1(L1))
         c1, s1 = p[-1].real, p[-1].imag
         cd2, sd2 = self._delta_2_cos_sin
-        points = []
-        for j1, j2 in plan.point_columns:
-            x1, z1, x2, z2 = p[j1].real, p[j1].imag, p[j2].real, p[j2].imag
-            # Paper eq. DKfull at delta_1 = 0, as in _shape.
-            points.append((x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2))
+        points = self._assembled(plan, p)
         u = None
         if joint_rates is not None:
             dp = integrals[1]  # d/dq_p on segment 1's columns, d/dq_d on segment 2's
@@ -436,6 +432,38 @@ class Catheter:
                 ]
             )
         return points, u
+
+    def _assembled(self, plan: _Plan, p: list[complex]) -> list[tuple[float, float, float]]:
+        """The plan's points c from the integrals ``x + i z`` of p_1 and p_2 at every limit
+        (the last: exp(i theta_1(L1))), as float triples."""
+        c1, s1 = p[-1].real, p[-1].imag
+        cd2, sd2 = self._delta_2_cos_sin
+        points = []
+        for j1, j2 in plan.point_columns:
+            x1, z1, x2, z2 = p[j1].real, p[j1].imag, p[j2].real, p[j2].imag
+            # Paper eq. DKfull at delta_1 = 0, as in _shape.
+            points.append((x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2))
+        return points
+
+    def points_of(self, q: Array) -> Array:
+        """:meth:`points` of a few configurations q (k, 3) at once through the
+        single-configuration path (the same numbers to rounding, one product for all k),
+        (k, 1 + n_markers, 3), mm."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 3:
+            raise ValueError(f"q must have shape (k, 3), got {q.shape}")
+        plan = self._marker_plan
+        rows = []
+        for joints in (_joint_floats(row, "q") for row in q):
+            eta_p = _joint_basis_rows(self.proximal.eta, joints[1], False)[0]
+            rows.append(eta_p + _joint_basis_rows(self.distal.eta, joints[2], False)[0])
+        e = np.exp(1j * (np.array(rows) @ plan.G_single))
+        integrals = (e.view(float) @ plan.weights_single).view(complex).tolist()
+        out = []
+        for p in integrals:
+            points = self._assembled(plan, p)
+            out.append(points[-1:] + points[:-1])
+        return np.array(out)
 
     @cached_property
     def _delta_2_cos_sin(self) -> tuple[float, float]:

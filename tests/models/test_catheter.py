@@ -582,3 +582,13 @@ def test_valid_extremes_never_give_nan(delta_2):
     for value in _outputs(catheter, q, q_dot, np.pi).values():
         assert np.all(np.isfinite(value))
     assert np.all(np.isfinite(catheter.backbone(q, 0.0, np.linspace(0.0, 29.0, 30))))
+
+
+def test_points_of_a_few_configurations_are_the_single_configuration_points():
+    catheter = default_catheter()
+    q = np.random.default_rng(5).uniform(-0.9, 0.9, (6, 3))
+    expected = np.array([catheter.points(row) for row in q])
+    np.testing.assert_allclose(catheter.points_of(q), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(catheter.points_of(q), catheter.points(q), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="shape"):
+        catheter.points_of(q[0])

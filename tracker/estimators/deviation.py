@@ -21,24 +21,35 @@ Array = np.ndarray
 DEVIATION_STEP_MM = 1e-3
 
 
-def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array, Array]:
-    """c, J and K at q by central differences (six shape evaluations)."""
-    h = DEVIATION_STEP_MM
-    steps = np.array([[0, 0], [h, 0], [-h, 0], [0, h], [0, -h], [h, h]], dtype=float)
-    joints = np.repeat(q[None], 6, axis=0)
-    joints[:, 1:] += steps
-    # Six single-configuration evaluations: fewer numpy calls than one batch of six.
-    c, plus_p, minus_p, plus_d, minus_d, both = (catheter.points(row) for row in joints)
-    J = np.stack([(plus_p - minus_p) / (2 * h), (plus_d - minus_d) / (2 * h)], -1)
-    K = np.stack(
+def _difference_weights(h: float) -> Array:
+    """The central differences as weights of the six shape evaluations (at q, q +- h e_p,
+    q +- h e_d, q + h (e_p + e_d)), one column per term of ``[J K]``: (6, 5)."""
+    a, b = 1 / (2 * h), 1 / h**2
+    return np.array(
         [
-            0.5 * (plus_p - 2 * c + minus_p) / h**2,
-            (both - plus_p - plus_d + c) / h**2,
-            0.5 * (plus_d - 2 * c + minus_d) / h**2,
-        ],
-        -1,
+            # J_p, J_d, K_pp (half the second difference), K_pd, K_dd
+            [0.0, 0.0, -b, b, -b],
+            [a, 0.0, 0.5 * b, -b, 0.0],
+            [-a, 0.0, 0.5 * b, 0.0, 0.0],
+            [0.0, a, 0.0, -b, 0.5 * b],
+            [0.0, -a, 0.0, 0.0, 0.5 * b],
+            [0.0, 0.0, 0.0, b, 0.0],
+        ]
     )
-    return c, J, K
+
+
+_STEPS = DEVIATION_STEP_MM * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1], [1, 1]], float)
+_WEIGHTS = _difference_weights(DEVIATION_STEP_MM)
+
+
+def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array]:
+    """c (P, 3) and ``[J K]`` (P, 3, 5) at q by central differences (six shape evaluations,
+    through the single-configuration path: fewer numpy calls than the batched one)."""
+    joints = np.repeat(q[None], 6, axis=0)
+    joints[:, 1:] += _STEPS
+    points = catheter.points_of(joints)
+    JK = (points.reshape(6, -1).T @ _WEIGHTS).reshape(points.shape[1:] + (5,))
+    return points[0], JK
 
 
 class ShapeExpansion:
@@ -74,8 +85,7 @@ class ShapeExpansion:
             if len(self._nodes) >= self.MAX_NODES:
                 self._nodes.clear()
             q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
-            c, J, K = _expansion(self.catheter, q)
-            found = self._nodes[key] = (c, np.concatenate([J, K], axis=-1))
+            found = self._nodes[key] = _expansion(self.catheter, q)
         return found
 
     def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
