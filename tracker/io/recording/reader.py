@@ -24,7 +24,7 @@ import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import BinaryIO
 
 import numpy as np
 from mcap.exceptions import McapError
@@ -39,7 +39,7 @@ from tracker.io.joints import JointHistory
 from tracker.io.limits import MAX_START_TIME_NS, SESSION_TIME_RANGE_S
 from tracker.io.recording import decode
 from tracker.io.recording.images import decode_image
-from tracker.io.recording.scan import Damage, Located, McapScan
+from tracker.io.recording.scan import ChunkRecords, Damage, McapScan
 from tracker.io.recording.schema import (
     FORMAT,
     FORMAT_VERSION,
@@ -50,7 +50,6 @@ from tracker.io.recording.schema import (
     MarkerQuality,
     RecordingError,
     background_topic,
-    decode_json,
     image_topic,
     markers_topic,
 )
@@ -60,6 +59,7 @@ Array = np.ndarray
 
 MAX_JOINT_GAP_S = 0.1
 """Frames farther than this from the nearest joint samples get no joint values (skipped)."""
+_EMPTY = decode.Store(np.zeros(0, np.int64), [])
 
 
 @dataclass(frozen=True)
@@ -150,13 +150,13 @@ class Recording:
         self._problems = decode.Problems()
         self._problem_warnings: list[str] = []  # the problems' lines now in the report
         self._metadata_raw: dict[str, dict[str, str]] = {}
-        self._channels: dict[int, str] = {}
-        self._last_time: dict[str, int] = {}
         self._max_time: int | None = None
         self._session_ns: tuple[int, int] | None = None  # known once 'cathtrack' is read
+        self._raw: dict[str, tuple[list[int], list]] = {}  # topic: log times, data (scan)
+        self._sinks: dict[int, tuple] = {}  # channel id: topic and where its messages go
         self._joint_blocks: list[dict] = []
-        self._per_frame: dict[str, dict[int, Any]] = {}
-        self._estimates_raw: dict[str, dict[int, dict]] = {}
+        self._per_frame: dict[str, decode.Store] = {}  # markers, truth, images by log time
+        self._estimates_raw: dict[str, decode.Store] = {}
         self._chunk_cache: tuple[int, list] | None = None
         self._file: BinaryIO | None = None
         # The scan allocates many small objects and frees none: the cyclic garbage collector
@@ -194,29 +194,111 @@ class Recording:
                 f"{self.path} is not an MCAP file (it does not start with the MCAP magic bytes)"
             ) from None
         damage: list[list] = []
-        awaiting = 0  # how many of the last damages wait for the first message after them
+        self._awaiting = 0  # how many of the last damages wait for the first message after them
         for item in self._mcap.records():
+            if item.__class__ is ChunkRecords:
+                self._records(item.records, item.offset, damage)
+                continue
             if isinstance(item, Damage):
                 self.report.damage.append(item)
                 damage.append([item, self._max_time, None])
-                awaiting += 1
+                self._awaiting += 1
                 continue
             record = item.record
-            if isinstance(record, Message):
-                if awaiting and self._in_session(record.log_time):
-                    for entry in damage[-awaiting:]:
-                        entry[2] = record.log_time
-                    awaiting = 0
-                self._message(record.channel_id, record.log_time, record.data, item)
-            elif isinstance(record, Channel):
-                self._channels[record.id] = record.topic
-                self.report.messages.setdefault(record.topic, 0)
-            elif isinstance(record, Metadata):
+            if isinstance(record, Metadata):
                 self._metadata_raw[record.name] = dict(record.metadata)
                 if record.name == "cathtrack":
                     start_ns = self._start_ns()
                     self._session_ns = None if start_ns is None else self._session(start_ns)
+            else:
+                self._records([record], -1, damage)
+        self._gather()
         return [tuple(entry) for entry in damage]
+
+    def _records(self, records: list, chunk_offset: int, damage: list[list]) -> None:
+        """Keep the log time and data of each message in the session on a declared channel
+        (per topic, in file order; the JSON is parsed later, a topic at a time), and the
+        channels declared. An image message keeps where it is instead of its data (unless it
+        is outside chunks): the image is read again when the frame is."""
+        sinks, problems = self._sinks, self._problems
+        low, high = self._session_ns or (-(2**63), 2**63 - 1)
+        newest = -1 if self._max_time is None else self._max_time
+        awaiting = self._awaiting
+        for index, record in enumerate(records):
+            if record.__class__ is not Message:
+                if isinstance(record, Channel):
+                    self._channel(record)
+                continue
+            log_time = record.log_time
+            inside = low <= log_time <= high
+            if awaiting and inside:
+                for entry in damage[-awaiting:]:
+                    entry[2] = log_time
+                awaiting = 0
+            sink = sinks.get(record.channel_id)
+            if sink is None:
+                problems.add("unknown_channel", f"channel {record.channel_id}")
+                continue
+            topic, add_time, add_data, lazy = sink
+            if not inside:
+                problems.add("out_of_session", topic)
+                continue
+            if log_time > newest:
+                newest = log_time
+            add_time(log_time)
+            if lazy:
+                inline = chunk_offset < 0
+                add_data(_ImageRef(chunk_offset, index, record.data if inline else None))
+            else:
+                add_data(record.data)
+        self._awaiting = awaiting
+        if newest >= 0:  # log times are unsigned
+            self._max_time = newest
+
+    def _channel(self, channel: Channel) -> None:
+        """A channel declared: where its messages go (the lists of its topic)."""
+        topic = channel.topic
+        self.report.messages.setdefault(topic, 0)
+        times, data = self._raw.setdefault(topic, ([], []))
+        lazy = topic.startswith("/camera/")
+        self._sinks[channel.id] = (topic, times.append, data.append, lazy)
+
+    def _gather(self) -> None:
+        """The messages kept by the scan, topic by topic: counted, checked for time order,
+        their JSON parsed; each time stamp's first message stored (:class:`decode.Store`)."""
+        problems, messages = self._problems, self.report.messages
+        for topic, (times, data) in self._raw.items():
+            if not times:
+                continue
+            messages[topic] = messages.get(topic, 0) + len(times)
+            stamps = np.array(times, dtype=np.int64)
+            if stamps.size > 1:
+                # Out of order: earlier than the latest before it (the order check at each
+                # message, for all messages at once).
+                late = int(np.count_nonzero(stamps[1:] < np.maximum.accumulate(stamps)[:-1]))
+                if late:
+                    problems.add("out_of_order", topic, late)
+            if topic.startswith("/camera/"):
+                self._per_frame[topic] = decode.Store.first_of(stamps, data, topic, problems)
+                continue
+            payloads = decode.json_messages(data, topic, problems)
+            parsed = [i for i, payload in enumerate(payloads) if payload is not None]
+            payloads = [payloads[i] for i in parsed]
+            if topic == TOPIC_JOINTS:
+                self._joint_blocks += payloads
+                continue
+            if not (
+                topic.startswith("/estimates/")
+                or topic == TOPIC_TRUTH
+                or topic.startswith("/markers/")
+            ):
+                continue  # another channel: read (its malformed messages counted), not kept
+            store = decode.Store.first_of(stamps[parsed], payloads, topic, problems)
+            if topic.startswith("/estimates/"):
+                self._estimates_raw[topic[len("/estimates/") :]] = store
+            else:
+                self._per_frame[topic] = store
+        self._raw = {}
 
     @staticmethod
     def _session(start_ns: int) -> tuple[int, int]:
@@ -232,16 +314,16 @@ class Recording:
 
     def _drop_out_of_session(self) -> None:
         """Skip (and count) what was stored before the session was known and lies outside."""
-        stores = [*self._per_frame.items(), *self._estimates_raw.items()]
-        for topic, store in stores:
-            outside = [stamp for stamp in store if not self._in_session(stamp)]
-            for stamp in outside:
-                del store[stamp]
-            if outside:
-                name = topic if topic.startswith("/") else f"/estimates/{topic}"
-                self._problems.add("out_of_session", name, len(outside))
+        low, high = self._session_ns
+        for stores in (self._per_frame, self._estimates_raw):
+            for topic, store in stores.items():
+                inside = (store.stamps >= low) & (store.stamps <= high)
+                if not inside.all():
+                    stores[topic] = store.where(inside)
+                    name = topic if topic.startswith("/") else f"/estimates/{topic}"
+                    self._problems.add("out_of_session", name, int(np.count_nonzero(~inside)))
         if self._max_time is not None and not self._in_session(self._max_time):
-            stamps = [stamp for store in self._per_frame.values() for stamp in store]
+            stamps = [int(store.stamps.max()) for store in self._per_frame.values() if store]
             self._max_time = max(stamps, default=None)
 
     def _in_session_damage(self, damage: Damage) -> Damage:
@@ -252,62 +334,6 @@ class Recording:
         if self._in_session(damage.start_ns) and self._in_session(damage.end_ns):
             return damage
         return dataclasses.replace(damage, start_ns=None, end_ns=None)
-
-    def _message(self, channel_id: int, log_time: int, data: bytes, where: Located) -> None:
-        topic = self._channels.get(channel_id)
-        if topic is None:
-            self._problems.add("unknown_channel", f"channel {channel_id}")
-            return
-        if not self._in_session(log_time):
-            self._problems.add("out_of_session", topic)
-            return
-        messages = self.report.messages
-        messages[topic] = messages.get(topic, 0) + 1
-        last = self._last_time.get(topic)
-        if last is None or log_time >= last:
-            self._last_time[topic] = log_time
-        else:
-            self._problems.add("out_of_order", topic)
-        if self._max_time is None or log_time > self._max_time:
-            self._max_time = log_time
-        if topic.startswith("/camera/"):
-            inline = where.chunk_offset < 0
-            self._store(
-                topic,
-                log_time,
-                _ImageRef(where.chunk_offset, where.index, data if inline else None),
-            )
-            return
-        payload = self._json(topic, data)
-        if payload is None:
-            return
-        if topic == TOPIC_JOINTS:
-            self._joint_blocks.append(payload)
-        elif topic.startswith("/estimates/"):
-            store = self._estimates_raw.setdefault(topic[len("/estimates/") :], {})
-            if log_time in store:
-                self._problems.add("duplicate", topic)
-            else:
-                store[log_time] = payload
-        elif topic == TOPIC_TRUTH or topic.startswith("/markers/"):
-            self._store(topic, log_time, payload)
-
-    def _store(self, topic: str, log_time: int, value) -> None:
-        store = self._per_frame.setdefault(topic, {})
-        if log_time in store:
-            self._problems.add("duplicate", topic)
-        else:
-            store[log_time] = value
-
-    def _json(self, topic: str, data: bytes) -> dict | None:
-        try:
-            payload = decode_json(data)
-        except (ValueError, UnicodeDecodeError):
-            payload = None
-        if not isinstance(payload, dict):
-            self._problems.add("malformed", topic)
-            return None
-        return payload
 
     def _seconds(self, time_ns: int) -> float:
         return (time_ns - self.metadata.start_time_ns) / 1e9
@@ -443,11 +469,10 @@ class Recording:
                 )
         if has_frames and not self.report.messages.get(TOPIC_TRUTH):
             self.report.warnings.append(f"missing channel {TOPIC_TRUTH}: no ground truth")
-        stamps = set()
-        for view in self.views:
-            stamps.update(self._per_frame.get(markers_topic(view), {}))
-            stamps.update(self._per_frame.get(image_topic(view), {}))
-        stamps = np.array(sorted(stamps), dtype=np.int64)
+        frame_stores = [self._per_frame.get(topic) for topic in frame_topics]
+        stamps = np.unique(
+            np.concatenate([np.zeros(0, np.int64)] + [s.stamps for s in frame_stores if s])
+        )
         times = (stamps - start_ns) / 1e9
         q, q_dot, gap_s = self.joints.interpolate(times)
         ok = gap_s <= self.max_joint_gap_s
@@ -467,16 +492,15 @@ class Recording:
             for name, s in self._estimates_raw.items()
         }
         n_points = self._point_count()
-        stamps = [int(x) for x in self._stamps]
         self._uv, self._cov, self._quality = {}, {}, {}
         for view in self.views:
             topic = markers_topic(view)
-            store = self._per_frame.get(topic, {})
+            store = self._per_frame.get(topic, _EMPTY)
             self._uv[view], self._cov[view], self._quality[view] = decode.marker_arrays(
-                store, stamps, n_points, topic, self._problems
+                store.at(self._stamps), n_points, topic, self._problems
             )
-        truth = self._per_frame.get(TOPIC_TRUTH, {})
-        self._truth = [decode.labels(truth.get(stamp), self._problems) for stamp in stamps]
+        truth = self._per_frame.get(TOPIC_TRUTH, _EMPTY).at(self._stamps)
+        self._truth = decode.all_labels(truth, self._problems)
         # The parsed JSON is now in arrays: drop it (millions of small objects that every
         # later garbage collection would walk). Image references stay, for lazy decoding.
         self._joint_blocks = []
@@ -506,7 +530,7 @@ class Recording:
 
     def _point_count(self) -> int:
         """Rows per view: the most common in the marker messages, else the catheter's."""
-        stores = [self._per_frame.get(markers_topic(view), {}) for view in self.views]
+        stores = [self._per_frame.get(markers_topic(view), _EMPTY) for view in self.views]
         n_points, seen = decode.point_count(stores)
         if len(seen) > 1:
             self.report.warnings.append(
@@ -528,7 +552,7 @@ class Recording:
         return self._chunk_cache[1][ref.index].data
 
     def _image(self, topic: str, stamp: int) -> Array | None:
-        ref = self._per_frame.get(topic, {}).get(stamp)
+        ref = self._per_frame.get(topic, _EMPTY).get(stamp)
         if ref is None:
             return None
         try:
@@ -539,10 +563,10 @@ class Recording:
             return None
 
     def _background(self, view: str) -> Array | None:
-        refs = self._per_frame.get(background_topic(view), {})
+        refs = self._per_frame.get(background_topic(view))
         if not refs:
             return None
-        return self._image(background_topic(view), min(refs))
+        return self._image(background_topic(view), int(refs.stamps[0]))
 
     @property
     def has_images(self) -> bool:
@@ -562,24 +586,21 @@ class Recording:
             them only for the frames it accepts.
         """
         has_images = self.has_images
-        for i in range(len(self._stamps)):
-            stamp = int(self._stamps[i])
+        # Each call hands out fresh arrays: one copy of each array per call, and every frame
+        # a row of it (a copy per frame and array cost more than the rest of the frame).
+        q, q_dot = list(self._q.copy()), list(self._q_dot.copy())
+        uv = list(zip(*(list(self._uv[v].copy()) for v in self.views), strict=True))
+        cov = list(zip(*(list(self._cov[v].copy()) for v in self.views), strict=True))
+        quality = list(zip(*(self._quality[v] for v in self.views), strict=True))
+        times = self._times.tolist()
+        for i, stamp in enumerate(self._stamps.tolist()):
             delta_L, labels = self._truth[i]
             decoded = None
             if has_images and (images(i) if callable(images) else images):
                 decoded = tuple(self._image(image_topic(v), stamp) for v in self.views)
                 decoded = None if any(image is None for image in decoded) else decoded
-            frame = Frame(
-                time_s=float(self._times[i]),
-                q=self._q[i].copy(),
-                q_dot=self._q_dot[i].copy(),
-                uv=tuple(self._uv[v][i].copy() for v in self.views),
-                cov=tuple(self._cov[v][i].copy() for v in self.views),
-                images=decoded,
-                delta_L_true_rad=delta_L,
-            )
-            quality = tuple(self._quality[v][i] for v in self.views)
-            yield RecordedFrame(frame, labels, quality)
+            frame = Frame(times[i], q[i], q_dot[i], uv[i], cov[i], decoded, delta_L)
+            yield RecordedFrame(frame, labels, quality[i])
 
     def frame_times_s(self) -> Array:
         return self._times.copy()
