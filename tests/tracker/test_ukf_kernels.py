@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from tracker.estimators import measurement_kernels as MK
 from tracker.estimators import ukf_kernels as K
 from tracker.estimators import ukf_rules as R
 
@@ -187,7 +188,7 @@ def test_frame_radius_and_model_error():
     c = rng.normal(size=(B, G, 3))
     present = rng.random((B, G)) < 0.7
     P = G - 1  # the last group is the velocity
-    radius = K.horizontal_radius(c, present, P)
+    radius = MK.horizontal_radius(c, present, P)
     expected = np.sqrt([sum(c[t, g, 0] ** 2 + c[t, g, 1] ** 2 for g in range(P) if present[t, g])
                         for t in range(B)])  # fmt: skip
     np.testing.assert_allclose(radius, expected, rtol=1e-14)
@@ -195,7 +196,7 @@ def test_frame_radius_and_model_error():
     u_norm, process_var = rng.uniform(0, 5, B), rng.uniform(0, 1e-4, B)
     dt = np.array([0.05, 0.0, 0.02])  # no interval: no torsion change term
     rate_var = np.where(dt > 0, process_var / np.where(dt > 0, dt, 1.0) ** 2, 0.0)
-    M = K.model_error(JK, 0.05, True, c, u_norm, 0.1, process_var, dt)
+    M = MK.model_error(JK, 0.05, True, c, u_norm, 0.1, process_var, dt)
     for t in range(B):
         for g in range(G):
             J = JK[t, g, :, :2]
@@ -205,7 +206,7 @@ def test_frame_radius_and_model_error():
                 expected = expected + (0.1 * u_norm[t]) ** 2 * np.eye(3)
                 expected = expected + rate_var[t] * np.outer(tangent, tangent)
             np.testing.assert_allclose(M[t, g], expected, rtol=1e-12, atol=1e-15)
-    without = K.model_error(JK, 0.05, False, c, u_norm, 0.1, process_var, dt)
+    without = MK.model_error(JK, 0.05, False, c, u_norm, 0.1, process_var, dt)
     np.testing.assert_allclose(without[:, -1], 0.05**2 * JK[:, -1, :, :2] @ np.swapaxes(
         JK[:, -1, :, :2], -1, -2), rtol=1e-12)  # fmt: skip
 
@@ -349,3 +350,35 @@ def test_an_uninformative_update_is_held_and_not_shown():
     x_post, _, nis, dof, _, _, status, _, done, shown = out
     assert not done[0] and not shown[0] and math.isnan(nis[0]) and dof[0] == 0
     assert status[0] == _FLAG["HELD"] | _FLAG["UNINFORMATIVE"]
+
+
+def test_a_frame_s_position_groups_are_assembled_with_their_presence_and_invariant_noise():
+    rng = np.random.default_rng(RNG_SEED)
+    B, P = 3, 4
+    tip = rng.normal(size=(B, 3))
+    tip_cov = np.stack([_spd(rng, 3) for _ in range(B)])
+    markers = rng.normal(size=(B, P - 1, 3))
+    markers_cov = np.stack([[_spd(rng, 3) for _ in range(P - 1)] for _ in range(B)])
+    markers[0, 1] = np.nan  # not found
+    tip_cov[2, 0, 1] = np.inf  # unusable
+    for has_tip, has_markers, G in ((True, True, P), (True, False, P + 1), (False, True, P)):
+        y, R, R_bar, present = MK.assemble_positions(
+            tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has_markers
+        )
+        for t in range(B):
+            for g in range(G):
+                if g == 0:
+                    v, C, given = tip[t], tip_cov[t], has_tip
+                elif g < P:
+                    v, C, given = markers[t, g - 1], markers_cov[t, g - 1], has_markers
+                else:
+                    v, C, given = np.zeros(3), np.eye(3), False  # the caller's velocity
+                ok = given and np.isfinite(v).all() and np.isfinite(C).all()
+                assert present[t, g] == ok
+                np.testing.assert_array_equal(y[t, g], v if ok else 0.0)
+                np.testing.assert_array_equal(R[t, g], C if ok else np.eye(3))
+                A = R[t, g]
+                horizontal = 0.5 * (A[0, 0] + A[1, 1])
+                skew = 0.5 * (A[0, 1] - A[1, 0])
+                expected = np.array([[horizontal, skew, 0], [-skew, horizontal, 0], [0, 0, A[2, 2]]])
+                np.testing.assert_allclose(R_bar[t, g], expected, rtol=1e-15)

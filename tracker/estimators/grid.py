@@ -47,7 +47,7 @@ import numpy as np
 import scipy.fft
 
 from models.catheter import Catheter
-from tracker.estimators import grid_kernels
+from tracker.estimators import grid_kernels, measurement_kernels
 from tracker.estimators._linalg import cholesky, spd_inverse
 from tracker.estimators.deviation import ShapeExpansion, deviation_decay, deviation_prior
 from tracker.estimators.measurement import (
@@ -120,6 +120,7 @@ class GridFilter:
         self._stack = np.empty((3, self.cells))
         self._expansion = ShapeExpansion(catheter)
         grid_kernels.warm_up()
+        measurement_kernels.warm_up()
         self.reset()
 
     def reset(self) -> None:

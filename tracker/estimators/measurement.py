@@ -63,7 +63,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from tracker.estimators import ukf_kernels
+from tracker.estimators import measurement_kernels, ukf_kernels
 
 Array = np.ndarray
 _EYE3 = np.eye(3)
@@ -173,7 +173,7 @@ class FrameGroups:
 
     def radius_mm(self) -> Array:
         """Horizontal radius of the present positions' model vectors, mm (B,)."""
-        return ukf_kernels.horizontal_radius(
+        return measurement_kernels.horizontal_radius(
             np.ascontiguousarray(self.c), self.present, self.n_positions
         )
 
@@ -422,7 +422,7 @@ def assemble_expanded(
     has_tip = tip is not None and tip_cov is not None
     has_markers = markers is not None and markers_cov is not None and P > 1
     contiguous = np.ascontiguousarray
-    y, R, R_bar, present = ukf_kernels.assemble_positions(
+    y, R, R_bar, present = measurement_kernels.assemble_positions(
         contiguous(tip, dtype=float) if has_tip else _NO_POINTS,
         contiguous(tip_cov, dtype=float) if has_tip else _NO_COVARIANCES,
         contiguous(markers, dtype=float) if has_markers else _NO_MARKERS,
@@ -519,7 +519,7 @@ def model_error_covariance(
     dt_s : array, shape (B,)
         The frame interval, s.
     """
-    return ukf_kernels.model_error(
+    return measurement_kernels.model_error(
         np.ascontiguousarray(groups.JK), float(white_mm), groups.has_velocity_group,
         np.ascontiguousarray(groups.c), np.ascontiguousarray(groups.u_norm_mm_s, dtype=float),
         float(velocity_relative_error), np.ascontiguousarray(process_var_rad2, dtype=float),

@@ -52,7 +52,7 @@ from functools import lru_cache
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from tracker.estimators import ukf_kernels, ukf_rules
+from tracker.estimators import measurement_kernels, ukf_kernels, ukf_rules
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
@@ -164,6 +164,7 @@ class FilterBank:
         # The kernels' indices (-1: not in the state).
         self._rate_index = -1 if self.rate is None else self.rate
         self._deviation_index = -1 if self.deviation is None else self.deviation
+        measurement_kernels.warm_up()
         ukf_kernels.warm_up()
         ukf_rules.warm_up()
         self.reset(n_trials)
@@ -529,41 +530,41 @@ class FilterBank:
         b, h, rows = marked
         r = b.size
         G, d = frame.present.shape[1], frame.dim
-        if rows is b:
-            x, P = self.x[b, h], self.P[b, h]
-            fresh = bool(self._factor_ok[b, h].all())
-            factor = self._factor[b, h] if fresh else None
-        else:
-            # Slot 0 (views when it is the only one): read only until the write-back.
-            x, P = np.ascontiguousarray(self.x[:, 0]), np.ascontiguousarray(self.P[:, 0])
-            fresh = bool(self._factor_ok[:, 0].all())
-            factor = np.ascontiguousarray(self._factor[:, 0]) if fresh else None
-        # The predict's factors where every updated hypothesis has one, else factorise.
-        if factor is None:
-            factor, ok_sigma = ukf_kernels.sigma_factors(P, self.spread)
-        else:
-            ok_sigma = np.ones(r, dtype=bool)
-        S, rho, Pxz, d2, _ = frame.innovation(
-            rows, x, factor, self.spread, scale[rows], M, self.Wm, self.Wc, self._rate_index,
-            self._deviation_index,
-        )  # fmt: skip
-        present = frame.present[rows]
         p, k = s.outlier_probability, s.outlier_scale
         threshold = outlier_threshold(d, p, k)
         if math.isfinite(threshold) and G > 1:
             gates = joint_gates(s.gate_probability, d, G)
         else:
             gates = _no_gates(G)
-        x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
-            ukf_rules.gate_and_fuse(
-                S, rho, Pxz, d2, present, ok_sigma, x, P, d, p, k, threshold,
-                doubt_threshold(d, p, k), gates, self.min_information, _FLAGS,
+        rules = (p, k, threshold, doubt_threshold(d, p, k), gates, self.min_information, _FLAGS)
+        if isinstance(frame, FrameGroups):
+            c = np.ascontiguousarray
+            status, nis, dof, rejected, inlier, shown, rho = ukf_rules.update_3d(
+                b, h, self.x, self.P, self._factor, self._factor_ok, self.good_x, self.good_P,
+                self.log_weight, self.mismatch_scale, MISMATCH_DECAY, self.spread, c(frame.c),
+                c(frame.JK), c(frame.y), c(frame.q), c(frame.R_bar), scale, M,
+                c(frame.present), frame.has_velocity_group, self.Wm, self.Wc,
+                self._deviation_index, self._rate_index, *rules,
+            )  # fmt: skip
+        else:
+            # Single views: their projections are made in numpy, the rules are the same.
+            P, factor, ok_sigma = ukf_kernels.row_factors(
+                b, h, self.P, self._factor, self._factor_ok
             )
-        )  # fmt: skip
-        ukf_rules.commit_update(
-            b, h, done, x_post, P_post, log_lik, self.x, self.P, self.good_x, self.good_P,
-            self.log_weight, self.mismatch_scale, MISMATCH_DECAY,
-        )  # fmt: skip
+            x = self.x[b, h]
+            S, rho, Pxz, d2, _ = frame.innovation(
+                rows, x, factor, self.spread, scale[rows], M, self.Wm, self.Wc,
+                self._rate_index, self._deviation_index,
+            )  # fmt: skip
+            x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
+                ukf_rules.gate_and_fuse(
+                    S, rho, Pxz, d2, frame.present[rows], ok_sigma, x, P, d, *rules
+                )
+            )
+            ukf_rules.commit_update(
+                b, h, done, x_post, P_post, log_lik, self.x, self.P, self.good_x, self.good_P,
+                self.log_weight, self.mismatch_scale, MISMATCH_DECAY,
+            )  # fmt: skip
         innovation = None
         if self.B == 1:
             # The fused residuals of each shown update (the inlying groups').

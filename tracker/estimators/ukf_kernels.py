@@ -241,6 +241,18 @@ def _sigma_offsets(L, spread, offsets):
 
 
 @numba.njit(cache=True, nogil=True)
+def _sigma_factor(P, L, work):
+    """The lower Cholesky factor of one covariance (n, n) into L for the sigma points (with
+    the jitter's second attempt); whether it factorised."""
+    if P.shape[0] == 1:
+        a = P[0, 0]
+        ok = math.isfinite(a) and a >= -_JITTER_FLOOR
+        L[0, 0] = math.sqrt(max(a, _JITTER_FLOOR)) if ok else 1.0
+        return ok
+    return _cholesky_jittered(P, L, work)
+
+
+@numba.njit(cache=True, nogil=True)
 def sigma_factors(P, spread):
     """Lower Cholesky factors of covariances (r, n, n) for the sigma points (with the
     jitter's second attempt), and which factorised (r,)."""
@@ -249,13 +261,28 @@ def sigma_factors(P, spread):
     ok = np.zeros(r, dtype=np.bool_)
     work = np.empty((n, n))
     for i in range(r):
-        if n == 1:
-            a = P[i, 0, 0]
-            ok[i] = math.isfinite(a) and a >= -_JITTER_FLOOR
-            L[i, 0, 0] = math.sqrt(max(a, _JITTER_FLOOR)) if ok[i] else 1.0
-        else:
-            ok[i] = _cholesky_jittered(P[i], L[i], work)
+        ok[i] = _sigma_factor(P[i], L[i], work)
     return L, ok
+
+
+@numba.njit(cache=True, nogil=True)
+def row_factors(b, h, P_all, L_all, factor_ok):
+    """The sigma points' factors of hypotheses (rows ``b``, ``h`` of P_all (B, H, n, n)):
+    the predict's ``L_all`` where ``factor_ok``, else a fresh factorisation; the rows'
+    covariances (r, n, n), factors (r, n, n) and which factorised (r,)."""
+    r = b.shape[0]
+    n = P_all.shape[2]
+    P = np.empty((r, n, n))
+    L = np.zeros((r, n, n))
+    ok = np.ones(r, dtype=np.bool_)
+    work = np.empty((n, n))
+    for i in range(r):
+        P[i] = P_all[b[i], h[i]]
+        if factor_ok[b[i], h[i]]:
+            L[i] = L_all[b[i], h[i]]
+        else:
+            ok[i] = _sigma_factor(P[i], L[i], work)
+    return P, L, ok
 
 
 @numba.njit(cache=True, nogil=True)
@@ -626,115 +653,6 @@ def mixture_rows(w, x1, P1, x2, P2):
     return x, P
 
 
-# ------------------------------------------------------------------------------ frames
-@numba.njit(cache=True, nogil=True)
-def horizontal_radius(c, present, n_positions):
-    """Root of the summed squared horizontal radii of the present positions' model vectors
-    (the first ``n_positions`` groups of c (B, G, 3)), mm (B,)."""
-    B = c.shape[0]
-    out = np.empty(B)
-    for t in range(B):
-        total = 0.0
-        for g in range(n_positions):
-            if present[t, g]:
-                total += c[t, g, 0] * c[t, g, 0] + c[t, g, 1] * c[t, g, 1]
-        out[t] = math.sqrt(total)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, process_var, dt):
-    """The white model-error covariance ``white^2 J J^T`` of every group (B, G, 3, 3), plus on
-    the velocity group (the last, with ``has_velocity``) the relative error of the modelled
-    velocity, ``(relative_error |u|)^2 I``, and the torsion change over the interval,
-    ``process_var / dt^2 t t^T`` with t the tip's tangent ``e_z x c_tip`` (``process_var``
-    (B,), rad^2; ``dt`` (B,), s; none where dt is not positive)."""
-    B, G = JK.shape[0], JK.shape[1]
-    M = np.empty((B, G, 3, 3))
-    w2 = white_mm * white_mm
-    for t in range(B):
-        for g in range(G):
-            for a in range(3):
-                for b in range(3):
-                    M[t, g, a, b] = w2 * (JK[t, g, a, 0] * JK[t, g, b, 0]
-                                          + JK[t, g, a, 1] * JK[t, g, b, 1])  # fmt: skip
-        if has_velocity:
-            rate_var = process_var[t] / dt[t] ** 2 if dt[t] > 0 else 0.0
-            v = relative_error * u_norm[t]
-            tangent = (-c[t, 0, 1], c[t, 0, 0], 0.0)
-            for a in range(3):
-                M[t, G - 1, a, a] += v * v
-                for b in range(3):
-                    M[t, G - 1, a, b] += rate_var * tangent[a] * tangent[b]
-    return M
-
-
-@numba.njit(cache=True, nogil=True)
-def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has_markers):
-    """The position groups of B trials' frames: each group's vector and covariance, its
-    rotation-invariant noise and whether it is present (finite vector and covariance).
-
-    Parameters
-    ----------
-    tip, tip_cov : arrays (B, 3), (B, 3, 3)
-        Used with ``has_tip``.
-    markers, markers_cov : arrays (B, P - 1, 3), (B, P - 1, 3, 3)
-        Used with ``has_markers`` (NaN rows: markers not found).
-    B, P, G : int
-        Trials, position groups (the tip and the markers) and groups (G > P: a velocity
-        group follows, filled by the caller).
-
-    Returns
-    -------
-    y : array (B, G, 3), R, R_bar : arrays (B, G, 3, 3), present : bool array (B, G)
-        Absent groups hold the placeholders 0 and I. R_bar is R's part invariant under
-        rotations about z: ``diag((R_xx + R_yy) / 2, (R_xx + R_yy) / 2, R_zz)`` plus the
-        antisymmetric horizontal part (``rotation_invariant``).
-    """
-    y = np.zeros((B, G, 3))
-    R = np.zeros((B, G, 3, 3))
-    R_bar = np.zeros((B, G, 3, 3))
-    present = np.zeros((B, G), dtype=np.bool_)
-    for t in range(B):
-        for g in range(G):
-            source = -1
-            if g == 0 and has_tip:
-                source = 0
-            elif 0 < g < P and has_markers:
-                source = g
-            finite = source >= 0
-            for a in range(3):
-                v = 0.0
-                if source == 0:
-                    v = tip[t, a]
-                elif source > 0:
-                    v = markers[t, source - 1, a]
-                y[t, g, a] = v
-                finite = finite and math.isfinite(v)
-                for b in range(3):
-                    w = 0.0
-                    if source == 0:
-                        w = tip_cov[t, a, b]
-                    elif source > 0:
-                        w = markers_cov[t, source - 1, a, b]
-                    R[t, g, a, b] = w
-                    finite = finite and math.isfinite(w)
-            present[t, g] = finite
-            if not finite:
-                for a in range(3):
-                    y[t, g, a] = 0.0
-                    for b in range(3):
-                        R[t, g, a, b] = 1.0 if a == b else 0.0
-            A = R[t, g]
-            horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
-            skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
-            R_bar[t, g, 0, 0] = R_bar[t, g, 1, 1] = horizontal
-            R_bar[t, g, 0, 1] = skew
-            R_bar[t, g, 1, 0] = -skew
-            R_bar[t, g, 2, 2] = A[2, 2]
-    return y, R, R_bar, present
-
-
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
     for n in (1, 3, 4):
@@ -746,6 +664,8 @@ def warm_up() -> None:
         )  # fmt: skip
         cap_rows(P, 1.0)
         L, ok = sigma_factors(P, 1.0)
+        rows = np.zeros(1, dtype=np.intp)
+        row_factors(rows, rows, P[:, None], L[:, None], np.ones((1, 1), dtype=bool))
         sigmas, offsets = sigma_rows(x, L, 1.0)
         W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
         G = 2
@@ -762,28 +682,17 @@ def warm_up() -> None:
             S, rho, Pxz, d2 = innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
             fuse_rows(S, rho, Pxz, np.ones((1, G), dtype=bool), d, x, P)
             mixture_rows(np.ones(1), x, P, x, P)
-            present = np.ones((1, G), dtype=bool)
-            horizontal_radius(c, present, G)
-            for has in (True, False):
-                assemble_positions(
-                    c[:, 0], eye[:, 0], c[:, 1:], eye[:, 1:], 1, G, G + 1, has, has
-                )
-            model_error(
-                np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1)
-            )
 
 
 __all__ = [
     "cap_rows",
-    "assemble_positions",
     "fuse_rows",
-    "horizontal_radius",
-    "model_error",
     "innovation_3d",
     "innovation_stats",
     "mixture_rows",
     "predict_3d",
     "predict_rows",
+    "row_factors",
     "sigma_factors",
     "sigma_rows",
     "warm_up",

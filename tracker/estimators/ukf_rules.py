@@ -33,7 +33,14 @@ import math
 import numba
 import numpy as np
 
-from tracker.estimators.ukf_kernels import _fuse_row, _mixture_row, _predict_row, _wrap
+from tracker.estimators.ukf_kernels import (
+    _fuse_row,
+    _mixture_row,
+    _predict_row,
+    _wrap,
+    innovation_3d,
+    row_factors,
+)
 
 # The flags the kernels set, in the order of the ``flags`` array they are given.
 FLAG_ORDER = (
@@ -550,6 +557,61 @@ def commit_update(b, h, done, x_post, P_post, log_lik, x, P, good_x, good_P, log
 
 
 @numba.njit(cache=True, nogil=True)
+def update_3d(
+    b, h, x_all, P_all, L_all, factor_ok, good_x, good_P, log_weight, mismatch_scale,
+    mismatch_decay, spread, c, JK, y, q, R_bar, scale, M, present, has_velocity, Wm, Wc,
+    deviation, rate, outlier_probability, outlier_scale, threshold, doubt, gates,
+    min_information, flag,
+):  # fmt: skip
+    """The update of hypotheses (rows ``b``, ``h``) with a 3-D frame, written back in place:
+    their sigma points (the predict's factors ``L_all`` where ``factor_ok``, else a fresh
+    factorisation), the innovation statistics
+    (:func:`~tracker.estimators.ukf_kernels.innovation_3d`), the rules of
+    :func:`gate_and_fuse` and the write-back of :func:`commit_update`.
+
+    Returns ``(status, nis, dof, rejected, inlier, shown, rho)`` per row as
+    :func:`gate_and_fuse` gives them (``rho``: the residuals, (r, 3G)).
+    """
+    r = b.shape[0]
+    n = x_all.shape[2]
+    G = c.shape[1]
+    P, L, ok_sigma = row_factors(b, h, P_all, L_all, factor_ok)
+    x = np.empty((r, n))
+    rows_c = np.empty((r, G, 3))
+    rows_JK = np.empty((r, G, 3, 5))
+    rows_y = np.empty((r, G, 3))
+    rows_q = np.empty(r)
+    rows_R = np.empty((r, G, 3, 3))
+    rows_M = np.empty((r, G, 3, 3))
+    rows_scale = np.empty(r)
+    rows_present = np.empty((r, G), dtype=np.bool_)
+    for i in range(r):
+        t = b[i]
+        x[i] = x_all[t, h[i]]
+        rows_c[i] = c[t]
+        rows_JK[i] = JK[t]
+        rows_y[i] = y[t]
+        rows_q[i] = q[t, 0]
+        rows_R[i] = R_bar[t]
+        rows_M[i] = M[t]
+        rows_scale[i] = scale[t]
+        rows_present[i] = present[t]
+    S, rho, Pxz, d2, _ = innovation_3d(
+        x, L, spread, rows_c, rows_JK, rows_y, rows_q, rows_R, rows_scale, rows_M, Wm, Wc,
+        deviation, rate, has_velocity,
+    )  # fmt: skip
+    x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = gate_and_fuse(
+        S, rho, Pxz, d2, rows_present, ok_sigma, x, P, 3, outlier_probability,
+        outlier_scale, threshold, doubt, gates, min_information, flag,
+    )  # fmt: skip
+    commit_update(
+        b, h, done, x_post, P_post, log_lik, x_all, P_all, good_x, good_P, log_weight,
+        mismatch_scale, mismatch_decay,
+    )  # fmt: skip
+    return status, nis, dof, rejected, inlier, shown, rho
+
+
+@numba.njit(cache=True, nogil=True)
 def normalise_single(active, log_weight):
     """Whether every trial has its hypotheses in slot 0 only (``first_only``) and at most
     one (``single``); with ``single`` the weights become 0 (log) where active, -inf
@@ -676,6 +738,17 @@ def warm_up() -> None:
         )  # fmt: skip
         commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(), lw,
                       np.ones(B), 0.99)  # fmt: skip
+        for has_velocity in (True, False):
+            c = np.ones((B, G, 3))
+            eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
+            W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
+            update_3d(
+                rows, rows, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
+                np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
+                np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
+                1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)), 1.0,
+                flag,
+            )  # fmt: skip
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
 
@@ -689,5 +762,6 @@ __all__ = [
     "normalise_single",
     "prepare_fuse",
     "report",
+    "update_3d",
     "warm_up",
 ]
