@@ -41,6 +41,7 @@ or layout would compile a second version on first use.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -655,6 +656,7 @@ def update_deviation(J, noise, inlier, C, Sigma, cos, sin, mu):
     return after
 
 
+@functools.cache
 def warm_up() -> None:
     """Compile every kernel, or load it from the cache, on a tiny input with the argument
     types the grid filter passes, so that the first frame does not wait for it."""

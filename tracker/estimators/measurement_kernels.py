@@ -14,6 +14,7 @@ them when a filter is made.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -128,8 +129,10 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
     return y, R, R_bar, present
 
 
+@functools.cache
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
+    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types (once
+    per process)."""
     G = 3
     c = np.ones((1, G, 3))
     eye = np.broadcast_to(np.eye(3), (1, G, 3, 3)).copy()

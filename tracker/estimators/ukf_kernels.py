@@ -32,6 +32,7 @@ version on first use).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -653,8 +654,10 @@ def mixture_rows(w, x1, P1, x2, P2):
     return x, P
 
 
+@functools.cache
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types."""
+    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types (once
+    per process)."""
     for n in (1, 3, 4):
         x = np.zeros((1, n))
         P = np.eye(n)[None].copy()

@@ -28,6 +28,7 @@ hypotheses. Flag values are passed in as integers (``_flag_values``), in the ord
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -689,6 +690,7 @@ def report(x, P, active, log_weight, initialised, prior, deviation, flags, flag)
     return mean, std
 
 
+@functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types
     (the flag values and the gate tables are shared read-only arrays, a type of their own)."""
