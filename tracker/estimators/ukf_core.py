@@ -36,6 +36,13 @@ The reported estimate is the moment-matched Gaussian of the hypotheses (circular
 filter torn between two hypotheses says so with a large std; hypotheses that come to agree
 are merged.
 
+The per-frame rules are compiled (numba) in :mod:`tracker.estimators.ukf_rules`, on the
+arithmetic of :mod:`tracker.estimators.ukf_kernels` and
+:mod:`tracker.estimators.measurement_kernels`: one loop over trials and hypotheses per stage,
+for a bank of one as for thousands. This class keeps the order of a step and what happens
+rarely: a covariance repair, the closed-form start, restart and added hypothesis, the weights
+and merging of several hypotheses, and the single views' projections (numpy).
+
 filterpy's role: its sigma-point weights are used here, and its
 :class:`~filterpy.kalman.UnscentedKalmanFilter` is the step-by-step reference of the tests
 (heavy tail and model error off: a predict and an update of a bank of one equal filterpy's).
