@@ -276,18 +276,16 @@ class FilterBank:
         running = self.initialised.copy()
         # The process model of the running trials' hypotheses (ukf_rules.begin_step); the
         # predicted covariances' factors are kept for the update's sigma points.
-        flags, dt, turn, Q, prior, ok, all_ok, self._factor = ukf_rules.begin_step(
+        flags, dt, turn, Q, prior, self._factor_ok, self._factor = ukf_rules.begin_step(
             np.ascontiguousarray(time_s, dtype=float), np.ascontiguousarray(q, dtype=float),
             self.time_s, self.q,
             self._no_partial if partial is None else np.ascontiguousarray(partial, dtype=bool),
-            self.x, self.P, self.active, running, s.process_noise_rad2_s,
-            s.rotation_noise_gain_rad, s.joint_error_mm, s.gain_error, s.deviation_length_mm,
-            s.deviation_rate_per_s, s.rate_process_noise_rad2_s3, self.max_variance,
-            self._deviation_index, self._rate_index, _FLAGS,
+            self.x, self.P, self.good_x, self.good_P, self.active, running,
+            s.process_noise_rad2_s, s.rotation_noise_gain_rad, s.joint_error_mm, s.gain_error,
+            s.deviation_length_mm, s.deviation_rate_per_s, s.rate_process_noise_rad2_s3,
+            self.max_variance, s.initial_rate_std_rad_s**2, self._deviation_index,
+            self._rate_index, _FLAGS,
         )  # fmt: skip
-        self._factor_ok = ok
-        if not all_ok:
-            self._repair(~ok, Q, flags)
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
             nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
@@ -308,16 +306,6 @@ class FilterBank:
         out.rejected = self.rejected.copy()
         return out
 
-    def _repair(self, bad: Array, Q: Array, flags: Array) -> None:
-        """Predicted hypotheses ``bad`` (B, H) whose covariance is not positive definite (or
-        not finite) take the last good state with a re-initialised covariance."""
-        b, h = np.nonzero(bad)
-        gx, gP = self._repaired(self.good_x[b, h], self.good_P[b, h])
-        gP[:, 0, 0] += Q[b]
-        ukf_kernels.cap_rows(gP, self.max_variance)
-        self.x[b, h], self.P[b, h] = gx, gP
-        flags[b] |= _F["COVARIANCE_REPAIRED"]
-
     def _marked(self, mask: Array) -> tuple[Array, Array, Array | slice]:
         """The hypotheses marked in ``mask`` (B, H) as indices (b, h), and the trial rows to
         read per hypothesis: ``slice(None)`` when they are the first slot of every trial in
@@ -328,16 +316,6 @@ class FilterBank:
         b, h = np.nonzero(mask)
         every = is_every_trial(b, self.B) and not h.any()
         return b, h, slice(None) if every else b
-
-    def _repaired(self, x: Array, P: Array) -> tuple[Array, Array]:
-        """The last good state with a re-initialised (diagonal, capped) covariance."""
-        diag = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).copy()
-        diag = np.where(np.isfinite(diag) & (diag > 0), diag, self.max_variance)
-        diag[:, 0] = np.clip(diag[:, 0], COVARIANCE_JITTER_FLOOR, self.max_variance)
-        if self.rate is not None:
-            r = self.rate
-            diag[:, r] = np.maximum(diag[:, r], self.settings.initial_rate_std_rad_s**2)
-        return x.copy(), diag[..., None] * np.eye(self.n)
 
     # ------------------------------------------------------------------ fuse
     def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:

@@ -35,6 +35,7 @@ import numba
 import numpy as np
 
 from tracker.estimators.ukf_kernels import (
+    _JITTER_FLOOR,
     _fuse_row,
     _mixture_row,
     _predict_row,
@@ -322,12 +323,14 @@ def gate_and_fuse(
 # ------------------------------------------------------------------------------ a step
 @numba.njit(cache=True, nogil=True)
 def begin_step(
-    time_s, q, last_time_s, last_q, partial, x, P, active, running, process_noise,
-    rotation_gain, joint_error, gain_error, deviation_length, deviation_rate, rate_noise,
-    max_variance, deviation, rate, flag,
+    time_s, q, last_time_s, last_q, partial, x, P, good_x, good_P, active, running,
+    process_noise, rotation_gain, joint_error, gain_error, deviation_length, deviation_rate,
+    rate_noise, max_variance, initial_rate_variance, deviation, rate, flag,
 ):  # fmt: skip
     """The process side of one frame for B trials: the predict of the active hypotheses of
-    the running trials, in place.
+    the running trials, in place; a prediction that is not usable (a covariance not positive
+    definite or not finite) is repaired from the last good state (:func:`_repair`,
+    ``COVARIANCE_REPAIRED``).
 
     Parameters
     ----------
@@ -339,6 +342,8 @@ def begin_step(
         Trials whose frame lacks part of its data.
     x, P : arrays (B, H, n), (B, H, n, n)
         The hypotheses, predicted in place.
+    good_x, good_P : arrays (B, H, n), (B, H, n, n)
+        Their last good states (the repair's).
     active : bool array (B, H); running : bool array (B,)
     process_noise, rotation_gain : float
         Torsion random walk, rad^2/s, and its growth per rad of base turn, rad.
@@ -348,6 +353,8 @@ def begin_step(
         The deviation's correlation length in joint travel (mm) and its decay rate (1/s).
     rate_noise, max_variance : float
         The rate's process noise (rad^2/s^3) and the delta_L variance cap (rad^2).
+    initial_rate_variance : float
+        The rate's least variance after a repair, rad^2/s^2.
     deviation, rate : int
         Indices in the state (-1: none).
     flag : int array
@@ -361,9 +368,7 @@ def begin_step(
     prior : array (B, 2)
         The deviation's prior variance at the frame's joints, mm^2.
     ok : bool array (B, H)
-        Hypotheses whose prediction is usable (False where predicted and not: to repair).
-    all_ok : bool
-        Every hypothesis' prediction is usable.
+        Hypotheses whose prediction was usable (False: repaired, with no factor).
     L : array (B, H, n, n)
         Lower Cholesky factors of the predicted covariances (where predicted and ok).
     """
@@ -374,7 +379,6 @@ def begin_step(
     Q = np.empty(B)
     prior = np.empty((B, 2))
     ok = np.ones((B, H), dtype=np.bool_)
-    all_ok = True
     L = np.zeros((B, H, n, n))
     work = np.empty((n, n))
     for t in range(B):
@@ -408,8 +412,39 @@ def begin_step(
                     x[t, h], P[t, h], Q[t], decay, prior[t, 0], prior[t, 1], dt[t], deviation,
                     rate, rate_noise, max_variance, L[t, h], work,
                 )  # fmt: skip
-                all_ok = all_ok and ok[t, h]
-    return flags, dt, turn, Q, prior, ok, all_ok, L
+                if not ok[t, h]:
+                    _repair(x[t, h], P[t, h], good_x[t, h], good_P[t, h], Q[t], max_variance,
+                            rate, initial_rate_variance)  # fmt: skip
+                    flags[t] |= flag[_REPAIRED]
+    return flags, dt, turn, Q, prior, ok, L
+
+
+@numba.njit(cache=True, nogil=True)
+def _repair(x, P, good_x, good_P, Q, max_variance, rate, initial_rate_variance):
+    """A hypothesis whose predicted covariance is not usable takes its last good state with a
+    re-initialised covariance: the last good variances (their magnitudes; ``max_variance``
+    where not finite or zero), delta_L's within [``_JITTER_FLOOR``, ``max_variance``], the
+    rate's at least ``initial_rate_variance``; then the frame's process variance ``Q`` and
+    the std cap. In place."""
+    n = x.shape[0]
+    for a in range(n):
+        x[a] = good_x[a]
+        v = abs(good_P[a, a])
+        if not (math.isfinite(v) and v > 0.0):
+            v = max_variance
+        if a == 0:
+            v = min(max(v, _JITTER_FLOOR), max_variance)
+        if a == rate:
+            v = max(v, initial_rate_variance)
+        for c in range(n):
+            P[a, c] = v if a == c else 0.0
+    P[0, 0] += Q
+    if P[0, 0] > max_variance:
+        f = math.sqrt(max_variance / P[0, 0])
+        for c in range(n):
+            P[0, c] *= f
+        for c in range(n):
+            P[c, 0] *= f
 
 
 @numba.njit(cache=True, nogil=True)
@@ -706,10 +741,10 @@ def warm_up() -> None:
         P = np.broadcast_to(np.eye(n), (B, H, n, n)).copy()
         active = np.ones((B, H), dtype=bool)
         running = np.ones(B, dtype=bool)
-        flags, dt, turn, Q, prior, ok, all_ok, L = begin_step(
+        flags, dt, turn, Q, prior, ok, L = begin_step(
             np.zeros(B), np.zeros((B, 3)), np.full(B, np.nan), np.zeros((B, 3)),
-            np.zeros(B, dtype=bool), x, P, active, running, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0,
-            1.0, 1.0, 1 if n > 2 else -1, 1 if n == 4 else -1, flag,
+            np.zeros(B, dtype=bool), x, P, x.copy(), P.copy(), active, running, 1.0, 1.0, 1.0,
+            1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1 if n > 2 else -1, 1 if n == 4 else -1, flag,
         )  # fmt: skip
         for d in (2, 3):
             noise = np.broadcast_to(np.eye(d), (B, G, d, d)).copy()
