@@ -21,6 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
+from models._shape_kernels import points_from_basis
 from models.modal import Basis, ModalSegment, PowerBasis, SegmentQuadrature
 from models.rotations import rot_y, rot_z, rotate_z, skew
 
@@ -186,6 +187,12 @@ class _Plan:
         W = np.kron(_block_diag(self.weights, np.ones((1, 1))), np.eye(2))
         W.setflags(write=False)
         return W
+
+    @cached_property
+    def tip_first_columns(self) -> tuple[Array, Array]:
+        """column_1 and column_2 with the last point (the tip) first."""
+        order = np.roll(np.arange(self.column_1.size), 1)
+        return self.column_1[order].copy(), self.column_2[order].copy()
 
     @cached_property
     def point_columns(self) -> tuple[tuple[int, int], ...]:
@@ -381,89 +388,79 @@ class Catheter:
 
     def _single(
         self, plan: _Plan, joints: list[float], joint_rates: list[float] | None
-    ) -> tuple[list[tuple[float, float, float]], Array | None]:
-        """The plan's points c (in its order) as float triples and the tip velocity u (None
-        without ``joint_rates``), for one configuration, with a fixed, small number of numpy
-        calls.
+    ) -> tuple[Array, Array | None]:
+        """The plan's points c (in its order, (P, 3)) and the tip velocity u (None without
+        ``joint_rates``) for one configuration.
 
-        The tracker calls it once per frame, where the dozens of numpy calls of the batched
-        path on arrays of a few elements cost far more than the arithmetic. The integrals
-        come from one product, ``exp(i theta) @ weights = x + i z``, and the few vectors are
-        assembled from Python floats.
+        The tracker calls it every frame, where the dozens of numpy calls of the batched path
+        on arrays of a few elements cost far more than the arithmetic: the points are
+        compiled (:func:`models._shape_kernels.points_from_basis`); the velocity's
+        derivatives come from one product, ``exp(i theta) @ weights = x + i z``, assembled
+        from Python floats.
         """
         _, q_p, q_d = joints
         rates = joint_rates is not None
         eta_p, deta_p = _joint_basis_rows(self.proximal.eta, q_p, rates)
         eta_d, deta_d = _joint_basis_rows(self.distal.eta, q_d, rates)
+        cd2, sd2 = self._delta_2_cos_sin
+        points = points_from_basis(
+            np.array([eta_p + eta_d]), plan.G_single, plan.weights_single, plan.column_1,
+            plan.column_2, cd2, sd2,
+        )[0]  # fmt: skip
         if joint_rates is None:
-            e = np.exp(1j * (np.array(eta_p + eta_d) @ plan.G_single))
-        else:
-            # Rows i theta and i dtheta/dq at every node (and at L1) become exp(i theta) and
-            # its derivative i dtheta/dq exp(i theta).
-            e = 1j * (np.array([eta_p + eta_d, deta_p + deta_d]) @ plan.G_single)
-            np.exp(e[0], out=e[0])
-            e[1] *= e[0]
+            return points, None
+        # Rows i theta and i dtheta/dq at every node (and at L1) become exp(i theta) and its
+        # derivative i dtheta/dq exp(i theta).
+        e = 1j * (np.array([eta_p + eta_d, deta_p + deta_d]) @ plan.G_single)
+        np.exp(e[0], out=e[0])
+        e[1] *= e[0]
         # The complex values viewed as (cos, sin) float pairs keep the product real: a
         # complex BLAS product (zgemm) was measured to slow every later np.exp ten times.
         integrals = (e.view(float) @ plan.weights_single).view(complex).tolist()
-        if joint_rates is None:
-            integrals = [integrals]
         p = integrals[0]  # x + i z of p_1 and p_2 at every limit; last: exp(i theta_1(L1))
         c1, s1 = p[-1].real, p[-1].imag
-        cd2, sd2 = self._delta_2_cos_sin
-        points = self._assembled(plan, p)
-        u = None
-        if joint_rates is not None:
-            dp = integrals[1]  # d/dq_p on segment 1's columns, d/dq_d on segment 2's
-            dc1, ds1 = dp[-1].real, dp[-1].imag  # d(cos, sin)(theta_1(L1)) / dq_p
-            j1, j2 = plan.point_columns[-1]
-            x2, z2 = p[j2].real, p[j2].imag
-            dx1, dz1, dx2, dz2 = dp[j1].real, dp[j1].imag, dp[j2].real, dp[j2].imag
-            dc_p = (dx1 + ds1 * cd2 * x2 + dc1 * z2, 0.0, dz1 - dc1 * cd2 * x2 + ds1 * z2)
-            dc_d = (s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2)
-            r_dot, p_dot, d_dot = joint_rates
-            c_x, c_y, _ = points[-1]
-            # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot z x c + dc/dq_p q_p_dot + dc/dq_d q_d_dot]
-            u = np.array(
-                [
-                    -r_dot * c_y + dc_p[0] * p_dot + dc_d[0] * d_dot,
-                    r_dot * c_x + dc_p[1] * p_dot + dc_d[1] * d_dot,
-                    dc_p[2] * p_dot + dc_d[2] * d_dot,
-                ]
-            )
+        # The tip velocity.
+        dp = integrals[1]  # d/dq_p on segment 1's columns, d/dq_d on segment 2's
+        dc1, ds1 = dp[-1].real, dp[-1].imag  # d(cos, sin)(theta_1(L1)) / dq_p
+        j1, j2 = plan.point_columns[-1]
+        x2, z2 = p[j2].real, p[j2].imag
+        dx1, dz1, dx2, dz2 = dp[j1].real, dp[j1].imag, dp[j2].real, dp[j2].imag
+        dc_p = (dx1 + ds1 * cd2 * x2 + dc1 * z2, 0.0, dz1 - dc1 * cd2 * x2 + ds1 * z2)
+        dc_d = (s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2)
+        r_dot, p_dot, d_dot = joint_rates
+        c_x, c_y, _ = points[-1]
+        # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot z x c + dc/dq_p q_p_dot + dc/dq_d q_d_dot]
+        u = np.array(
+            [
+                -r_dot * c_y + dc_p[0] * p_dot + dc_d[0] * d_dot,
+                r_dot * c_x + dc_p[1] * p_dot + dc_d[1] * d_dot,
+                dc_p[2] * p_dot + dc_d[2] * d_dot,
+            ]
+        )
         return points, u
-
-    def _assembled(self, plan: _Plan, p: list[complex]) -> list[tuple[float, float, float]]:
-        """The plan's points c from the integrals ``x + i z`` of p_1 and p_2 at every limit
-        (the last: exp(i theta_1(L1))), as float triples."""
-        c1, s1 = p[-1].real, p[-1].imag
-        cd2, sd2 = self._delta_2_cos_sin
-        points = []
-        for j1, j2 in plan.point_columns:
-            x1, z1, x2, z2 = p[j1].real, p[j1].imag, p[j2].real, p[j2].imag
-            # Paper eq. DKfull at delta_1 = 0, as in _shape.
-            points.append((x1 + s1 * cd2 * x2 + c1 * z2, sd2 * x2, z1 - c1 * cd2 * x2 + s1 * z2))
-        return points
 
     def points_of(self, q: Array) -> Array:
         """:meth:`points` of a few configurations q (k, 3) at once through the
-        single-configuration path (the same numbers to rounding, one product for all k),
-        (k, 1 + n_markers, 3), mm."""
+        single-configuration path (the same numbers to rounding), (k, 1 + n_markers, 3), mm."""
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 3:
             raise ValueError(f"q must have shape (k, 3), got {q.shape}")
+        return self._points_single([_joint_floats(row, "q") for row in q])
+
+    def _points_single(self, joints: list[list[float]]) -> Array:
+        """The tip's and the markers' points (tip first) of configurations given as float
+        triples, compiled (:func:`models._shape_kernels.points_from_basis`), (k, P, 3)."""
         plan = self._marker_plan
-        rows = []
-        for joints in (_joint_floats(row, "q") for row in q):
-            eta_p = _joint_basis_rows(self.proximal.eta, joints[1], False)[0]
-            rows.append(eta_p + _joint_basis_rows(self.distal.eta, joints[2], False)[0])
-        e = np.exp(1j * (np.array(rows) @ plan.G_single))
-        integrals = (e.view(float) @ plan.weights_single).view(complex).tolist()
-        out = []
-        for p in integrals:
-            points = self._assembled(plan, p)
-            out.append(points[-1:] + points[:-1])
-        return np.array(out)
+        rows = [
+            _joint_basis_rows(self.proximal.eta, q_p, False)[0]
+            + _joint_basis_rows(self.distal.eta, q_d, False)[0]
+            for _, q_p, q_d in joints
+        ]
+        column_1, column_2 = plan.tip_first_columns
+        cd2, sd2 = self._delta_2_cos_sin
+        return points_from_basis(
+            np.array(rows), plan.G_single, plan.weights_single, column_1, column_2, cd2, sd2
+        )
 
     @cached_property
     def _delta_2_cos_sin(self) -> tuple[float, float]:
@@ -493,8 +490,7 @@ class Catheter:
         if q.shape == (3,) and (q_dot is None or q_dot.shape == (3,)):
             joints = _joint_floats(q, "q")
             rates = None if q_dot is None else _joint_floats(q_dot, "q_dot")
-            points, u = self._single(plan, joints, rates)
-            c = np.array(points)
+            c, u = self._single(plan, joints, rates)
             return ShapeVectors(q_r_rad=q[0], c_tip_mm=c[-1], c_markers_mm=c[:-1], u_tip_mm_s=u)
         q = check_joints(q)
         if q_dot is not None:
@@ -524,8 +520,7 @@ class Catheter:
         """
         q = np.asarray(q, dtype=float)
         if q.shape == (3,):
-            points = self._single(self._marker_plan, _joint_floats(q, "q"), None)[0]
-            return np.array(points[-1:] + points[:-1])
+            return self._points_single([_joint_floats(q, "q")])[0]
         shape = self.shape_vectors(q)
         return np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from models import _shape_kernels as shape_kernels
 from models.catheter import Catheter
 
 Array = np.ndarray
@@ -76,6 +77,8 @@ class ShapeExpansion:
 
     def __init__(self, catheter: Catheter) -> None:
         self.catheter = catheter
+        # The model's points are compiled: loaded (or compiled) now, not at the first frame.
+        shape_kernels.warm_up()
         self._nodes: dict[tuple[int, int], tuple[Array, Array]] = {}
 
     def _node(self, key: tuple[int, int]) -> tuple[Array, Array]:
