@@ -66,7 +66,6 @@ from tracker.io.datagrams import (
     encode_markers,
 )
 from tracker.io.recording import (
-    SCHEMAS,
     RecordingError,
     RecordingWriter,
     encode_image,
@@ -74,6 +73,13 @@ from tracker.io.recording import (
     schema_for_topic,
 )
 from tracker.io.recording.images import image_schema
+from tracker.io.recording.joint_samples import (
+    FILE_DESCRIPTOR_SET,
+    _block,
+    encode_joint_block,
+)
+from tracker.io.recording.protobuf import len_field, varint_bytes
+from tracker.io.recording.schema import SCHEMAS_V1
 from tracker.io.udp import CLOCK_JUMP_SAMPLES, JointReceiver, MarkerReceiver
 from tracker.live.sources import VideoSource
 from tracker.reconstruction import Reconstructor
@@ -613,7 +619,8 @@ def test_recording_that_is_missing_or_a_folder(tmp_path):
 @dataclass
 class Content:
     """What a recording holds, as the mcap library writes it: metadata records and messages
-    (topic, log time ns, bytes) in order."""
+    (topic, log time ns, bytes) in order; ``/joints`` in JSON (format version 1) or
+    protobuf (version 2), as the metadata says."""
 
     metadata: dict[str, dict[str, str]]
     messages: list[tuple[str, int, bytes]]
@@ -631,13 +638,16 @@ class Content:
                     continue
                 if topic not in channels:
                     name = schema_for_topic(topic)
-                    if name is None:
+                    protobuf_joints = self.metadata.get("cathtrack", {}).get("format_version") == "2"
+                    if topic == "/joints" and protobuf_joints:
+                        encoding, blob, kind = "protobuf", FILE_DESCRIPTOR_SET, "protobuf"
+                    elif name is None:
                         schema = image_schema()
                         name, encoding, blob, kind = (
                             schema.name, schema.encoding, bytes(schema.data), "protobuf"
                         )  # fmt: skip
                     else:
-                        encoding, blob, kind = "jsonschema", json.dumps(SCHEMAS[name]).encode(), "json"
+                        encoding, blob, kind = "jsonschema", json.dumps(SCHEMAS_V1[name]).encode(), "json"
                     if name not in schemas:
                         schemas[name] = writer.register_schema(name, encoding, blob)
                     channels[topic] = writer.register_channel(topic, kind, schemas[name])
@@ -649,11 +659,20 @@ class Content:
 START_NS = 1_700_000_000 * 10**9  # a live session: log times are wall-clock
 
 
-def _content(images: bool = False) -> Content:
+def _joint_message(block: dict, version: int) -> bytes:
+    """A /joints message of a format version: JSON (1) or protobuf (2)."""
+    if version == 1:
+        return orjson.dumps(block)
+    names = ("q_r_rad", "q_p_mm", "q_d_mm", "q_r_dot_rad_s", "q_p_dot_mm_s", "q_d_dot_mm_s")
+    q, q_dot = (np.column_stack([block[n] for n in part]) for part in (names[:3], names[3:]))
+    return encode_joint_block(np.array(block["time_ns"]), q, q_dot)
+
+
+def _content(images: bool = False, version: int = 1) -> Content:
     metadata = {
         "cathtrack": {
             "format": "cathtrack-recording",
-            "format_version": "1",
+            "format_version": str(version),
             "start_time_ns": str(START_NS),
             "writer": "test_faults",
         },
@@ -674,7 +693,7 @@ def _content(images: bool = False) -> Content:
             names = ("q_r_rad", "q_p_mm", "q_d_mm", "q_r_dot_rad_s", "q_p_dot_mm_s", "q_d_dot_mm_s")
             for k, name in enumerate(names):
                 block[name] = (q if k < 3 else q_dot)[:, k % 3].tolist()
-            messages.append(("/joints", block["time_ns"][-1], orjson.dumps(block)))
+            messages.append(("/joints", block["time_ns"][-1], _joint_message(block, version)))
             j += t.size
         t = stamp(frame.time_s)
         for view, name in enumerate(("front", "side")):
@@ -697,7 +716,7 @@ def _content(images: bool = False) -> Content:
         block[name] = q[:, k].tolist()
     for k, name in enumerate(("q_r_dot_rad_s", "q_p_dot_mm_s", "q_d_dot_mm_s")):
         block[name] = q_dot[:, k].tolist()
-    messages.append(("/joints", block["time_ns"][-1], orjson.dumps(block)))
+    messages.append(("/joints", block["time_ns"][-1], _joint_message(block, version)))
     return Content(metadata, messages)
 
 
@@ -890,6 +909,86 @@ def test_recording_semantic_damage_is_counted_and_the_rest_kept(
     assert len(frames) >= N_FRAMES - 1
 
 
+def _binary_joints(edit: Callable[[np.ndarray, np.ndarray, np.ndarray], bytes]):
+    """Replace the protobuf joint block that ends at frame 10 by ``edit(t, q, q_dot)``."""
+
+    def apply(content: Content) -> None:
+        i = _message(content, "/joints", FRAME_10_NS)
+        t, q, q_dot = _block(content.messages[i][2])
+        content.messages[i] = ("/joints", FRAME_10_NS, edit(t.copy(), q.copy(), q_dot.copy()))
+
+    return apply
+
+
+def _set(array: np.ndarray, index, value) -> np.ndarray:
+    array[index] = value
+    return array
+
+
+def _column_bytes(n: int) -> int:
+    """Bytes of one packed column of n samples: key, length (a varint), values."""
+    return 1 + len(varint_bytes(8 * n)) + 8 * n
+
+
+def _unequal_columns(t, q, q_dot) -> bytes:
+    """The block with its q_d column (field 4) one sample short, the others as written."""
+    good, field = encode_joint_block(t, q, q_dot), _column_bytes(t.size)
+    return good[: 3 * field] + len_field(4, q[:-1, 2].tobytes()) + good[4 * field :]
+
+
+BINARY_JOINT_DAMAGE = [
+    # (name, edit, a word of the warning, frames that may differ): format version 2
+    ("truncated block", _binary_joints(lambda t, q, r: encode_joint_block(t, q, r)[:-5]),
+     "do not match", BLOCK_10),
+    ("columns of unequal length", _binary_joints(_unequal_columns), "do not match", BLOCK_10),
+    ("rate column q_d_dot missing", _binary_joints(lambda t, q, r: encode_joint_block(t, q, r)[
+        : -_column_bytes(t.size)]), "do not match", BLOCK_10),  # fmt: skip
+    ("not protobuf", _binary_joints(lambda t, q, r: b"\xff" * 64), "do not match", BLOCK_10),
+    ("a JSON block", _binary_joints(lambda t, q, r: orjson.dumps({"time_ns": t.tolist()})),
+     "do not match", BLOCK_10),
+    ("joint value NaN", _binary_joints(lambda t, q, r: encode_joint_block(t, _set(q, (7, 1),
+     math.nan), r)), "NaN or null", NOTHING),  # fmt: skip
+    ("joint rate infinite", _binary_joints(lambda t, q, r: encode_joint_block(t, q, _set(r, (3, 0),
+     math.inf))), "NaN or null", NOTHING),  # fmt: skip
+    ("joint times unsorted", _binary_joints(lambda t, q, r: encode_joint_block(t[::-1], q[::-1],
+     r[::-1])), "out of time order", NOTHING),  # fmt: skip
+    ("joint time -1", _binary_joints(lambda t, q, r: encode_joint_block(_set(t, 7, -1), q, r)),
+     "outside the session", NOTHING),
+    ("joint q_d 1e3 mm", _binary_joints(lambda t, q, r: encode_joint_block(t, _set(q, (7, 2),
+     1e3), r)), "beyond the physical ranges", NOTHING),  # fmt: skip
+]
+
+
+@pytest.fixture(scope="module")
+def binary_content_frames(tmp_path_factory):
+    """The undamaged version 2 recording reads back every frame unchanged."""
+    path = _content(version=2).write(tmp_path_factory.mktemp("content") / "good_v2.mcap")
+    frames, warnings, _ = _read(path)
+    assert warnings == [] and len(frames) == N_FRAMES
+    assert_frames_intact(frames)
+    return frames
+
+
+@pytest.mark.parametrize(
+    ("name", "edit", "word", "affected"),
+    BINARY_JOINT_DAMAGE,
+    ids=[c[0] for c in BINARY_JOINT_DAMAGE],
+)
+def test_recording_binary_joint_damage_is_counted_and_the_rest_kept(
+    binary_content_frames, tmp_path, name, edit, word, affected
+):
+    """Format version 2: a damaged protobuf joint block is one counted loss (or its bad
+    samples are), never a crash, and the frames away from it read back unchanged."""
+    content = _content(version=2)
+    edit(content)
+    path = content.write(tmp_path / "binary.mcap")
+    frames, warnings, _ = _read(path)
+    assert any(word in w for w in warnings), warnings
+    assert all("\n" not in w for w in warnings)
+    assert_frames_intact(frames, affected)
+    assert len(frames) == N_FRAMES
+
+
 IMAGE_DAMAGE = [
     ("image garbage", b"\xff" * 100),
     ("image of another encoding", encode_image(np.zeros((4, 4), np.uint8), "front", 0).replace(
@@ -916,7 +1015,7 @@ METADATA_DAMAGE = [
     ("start_time_ns not a number", ("cathtrack", "start_time_ns", "soon"), "start_time_ns"),
     ("start_time_ns 2^64", ("cathtrack", "start_time_ns", str(2**64)), "start_time_ns"),
     ("start_time_ns negative", ("cathtrack", "start_time_ns", "-5"), "start_time_ns"),
-    ("format version 2", ("cathtrack", "format_version", "2"), "version"),
+    ("format version 3", ("cathtrack", "format_version", "3"), "version"),
     ("another format", ("cathtrack", "format", "ros2"), "not a cathtrack recording"),
     ("no cathtrack record", ("cathtrack", None, None), "not a cathtrack recording"),
     ("no rig record", ("rig", None, None), "'rig'"),

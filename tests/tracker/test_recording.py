@@ -23,9 +23,9 @@ from tracker.io.recording import (
     MarkerQuality,
     RecordingError,
     RecordingWriter,
+    joint_samples,
     open_recording,
 )
-from tracker.io.recording import writer as recording_writer
 from tracker.types import Estimate, Flag, Frame
 
 REPO = Path(__file__).resolve().parents[2]
@@ -274,6 +274,13 @@ def test_mcap_reader_reads_every_channel_with_the_documented_schemas(recorded):
                 assert channel.message_encoding == "json"
                 assert json.loads(schema.data) == documented[schema.name]
                 _validate(json.loads(message.data), documented[schema.name], channel.topic)
+            elif channel.topic == "/joints":
+                assert (schema.name, schema.encoding, channel.message_encoding) == (
+                    "cathtrack.JointSamples",
+                    "protobuf",
+                    "protobuf",
+                )
+                assert schema.data == joint_samples.FILE_DESCRIPTOR_SET
             else:
                 assert (schema.name, schema.encoding, channel.message_encoding) == (
                     "foxglove.RawImage",
@@ -283,8 +290,10 @@ def test_mcap_reader_reads_every_channel_with_the_documented_schemas(recorded):
                 # the documented field numbers: 2 width, 3 height, 4 encoding, 5 step, 6 data
                 image = rec.decode_image(message.data)
                 assert image.dtype == np.uint8 and image.shape == (48, 64)
-    assert metadata["cathtrack"]["format_version"] == str(rec.FORMAT_VERSION)
+    assert metadata["cathtrack"]["format_version"] == str(rec.FORMAT_VERSION) == "2"
     assert set(metadata) == {"cathtrack", "model", "rig", "settings"}
+    # the message definition printed in the docs is the one the schema describes
+    assert f"```proto\n{joint_samples.PROTO}```" in doc
     for topic in (
         "/joints",
         "/markers/front",
@@ -320,6 +329,217 @@ def test_rerun_reads_the_images(recorded):
     for frame in frames:
         got = images[int(round(frame.time_s * 1e9))]
         np.testing.assert_array_equal(got.reshape(48, 64), frame.images[0])
+
+
+# ------------------------------------------------------------------------------ versions
+def _write_session(path: Path, frames: list[Frame], rates: bool, version: int) -> dict:
+    """A session with one NaN joint sample, joints with or without rates, in one version."""
+    t_joint = np.arange(0, 0.05 * len(frames) + 0.05, 0.001)
+    q, q_dot = _joints(t_joint)
+    q[700, 1] = np.nan
+    quality = (MarkerQuality(0, (), 2.1), None)
+    with RecordingWriter(
+        path, model_toml=MODEL_TOML, rig_toml=RIG_TOML, format_version=version
+    ) as writer:
+        j = 0
+        for k, frame in enumerate(frames):
+            upto = int(np.searchsorted(t_joint, frame.time_s + 1e-12, side="right"))
+            writer.write_joints(t_joint[j:upto], q[j:upto], q_dot[j:upto] if rates else None)
+            j = upto
+            writer.write_frame(frame, FrameLabels(plane=k // 10, noise_level=0.5), quality)
+        writer.write_joints(t_joint[j:], q[j:], q_dot[j:] if rates else None)
+    return dict(t_joint=t_joint, q=q, q_dot=q_dot)
+
+
+@pytest.mark.parametrize("rates", [True, False], ids=["rates", "no rates"])
+def test_version_1_and_version_2_files_read_identically(tmp_path, rates):
+    """The same session written in format version 1 (joint blocks in JSON) and 2 (protobuf)
+    reads back the same: joint stream, frames, labels, quality and warnings."""
+    from mcap.reader import make_reader
+
+    frames = _frames(30, np.random.default_rng(11), images=False)
+    read = {}
+    for version in (1, 2):
+        path = tmp_path / f"v{version}.mcap"
+        written = _write_session(path, frames, rates, version)
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+            channels = reader.get_summary().channels.values()
+            encodings = {c.topic: c.message_encoding for c in channels}
+        assert metadata["cathtrack"]["format_version"] == str(version)
+        assert encodings["/joints"] == {1: "json", 2: "protobuf"}[version]
+        with open_recording(path) as r:
+            assert r.metadata.format_version == version
+            read[version] = (r.report.warnings, r.joints, list(r.frames()))
+    (warnings_1, joints_1, frames_1), (warnings_2, joints_2, frames_2) = read[1], read[2]
+    assert warnings_1 == warnings_2 and len(warnings_1) == 1 and "NaN" in warnings_1[0]
+    np.testing.assert_array_equal(joints_1.time_s, joints_2.time_s)
+    np.testing.assert_array_equal(joints_1.q, joints_2.q)
+    if rates:
+        np.testing.assert_array_equal(joints_1.q_dot, joints_2.q_dot)
+    else:
+        assert joints_1.q_dot is None and joints_2.q_dot is None
+    keep = np.ones(written["t_joint"].size, dtype=bool)
+    keep[700] = False  # the NaN sample, dropped
+    np.testing.assert_array_equal(joints_2.q, written["q"][keep])
+    assert len(frames_1) == len(frames_2) == len(frames)
+    for one, two in zip(frames_1, frames_2, strict=True):
+        assert one.labels == two.labels and one.quality == two.quality
+        a, b = one.frame, two.frame
+        assert a.time_s == b.time_s and a.delta_L_true_rad == b.delta_L_true_rad
+        for x, y in zip((a.q, a.q_dot, *a.uv, *a.cov), (b.q, b.q_dot, *b.uv, *b.cov), strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_joint_blocks_hold_up_to_50_samples_and_copy_the_callers_arrays(tmp_path):
+    """Samples given one at a time (as live) make blocks of 50; a change between samples
+    with and without rates starts a block; the caller's arrays may be reused at once."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "blocks.mcap"
+    q = np.zeros(3)
+    rates = np.zeros(3)
+    with RecordingWriter(path, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
+        for k in range(130):
+            q[:] = (0.001 * k, 0.01 * k, -0.01 * k)
+            rates[:] = k
+            writer.write_joints(0.001 * k, q, rates if k < 120 else None)
+    with open(path, "rb") as f:
+        messages = [m for _, _, m in make_reader(f).iter_messages(topics=["/joints"])]
+    sizes = [joint_samples._block(m.data)[0].size for m in messages]
+    assert sizes == [50, 50, 20, 10]
+    assert [joint_samples._block(m.data)[2] is None for m in messages] == [False] * 3 + [True]
+    with open_recording(path) as r:
+        # The samples without rates in a stream with rates have no rates: dropped (as in
+        # version 1); the others are each sample as it was given.
+        assert any("10 joint sample(s) hold NaN" in w for w in r.report.warnings)
+        np.testing.assert_array_equal(r.joints.q[:, 1], 0.01 * np.arange(120))
+        np.testing.assert_array_equal(r.joints.q_dot[:, 0], np.arange(120))
+        np.testing.assert_array_equal(np.round(r.joints.time_s * 1e9), 1e6 * np.arange(120))
+
+
+def _varint(data: bytes, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if byte < 0x80:
+            return value, pos
+
+
+def _wire_fields(data: bytes) -> list[tuple[int, int, object]]:
+    """The top-level fields of a protobuf message: (number, wire type, int or bytes); this
+    test's own reading of protobuf.dev's encoding rules, no cathtrack code."""
+    out, pos = [], 0
+    while pos < len(data):
+        key, pos = _varint(data, pos)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _varint(data, pos)
+            out.append((number, wire, value))
+            continue
+        if wire == 2:  # length-delimited
+            size, pos = _varint(data, pos)
+        else:  # 8 or 4 bytes
+            size = {1: 8, 5: 4}[wire]
+        out.append((number, wire, bytes(data[pos : pos + size])))
+        pos += size
+    return out
+
+
+def test_joint_channel_decodes_with_the_schema_stored_in_the_file(recorded):
+    """The /joints blocks decoded from the FileDescriptorSet of their schema record and
+    protobuf's encoding rules alone (no cathtrack code, no protobuf runtime): the field
+    names, numbers and types come from the file, the values are those written."""
+    from mcap.reader import make_reader
+
+    path, _, written = recorded
+    with open(path, "rb") as f:
+        messages = list(make_reader(f).iter_messages(topics=["/joints"]))
+    schema = messages[0][0]
+    assert (schema.name, schema.encoding) == ("cathtrack.JointSamples", "protobuf")
+    # FileDescriptorSet.file (1): FileDescriptorProto package (2), message_type (4):
+    # DescriptorProto name (1), field (2): FieldDescriptorProto name 1, number 3, label 4,
+    # type 5, json_name 10 (the name itself: JSON exports keep the names of version 1)
+    ((_, _, file),) = _wire_fields(schema.data)
+    file_fields = _wire_fields(file)
+    package = [v for n, _, v in file_fields if n == 2][0].decode()
+    types = {
+        package + "." + [v for n, _, v in _wire_fields(m) if n == 1][0].decode(): m
+        for n, _, m in file_fields
+        if n == 4
+    }
+    columns = {}
+    for number, _, field in _wire_fields(types[schema.name]):
+        if number == 2:
+            f = {n: v for n, _, v in _wire_fields(field)}
+            columns[f[1].decode()] = (f[3], f[4], f[5], f[10].decode())
+    DOUBLE, SFIXED64, REPEATED = 1, 16, 3  # descriptor.proto's enums
+    names = [
+        "time_ns",
+        "q_r_rad",
+        "q_p_mm",
+        "q_d_mm",
+        "q_r_dot_rad_s",
+        "q_p_dot_mm_s",
+        "q_d_dot_mm_s",
+    ]
+    assert columns == {
+        name: (k + 1, REPEATED, SFIXED64 if k == 0 else DOUBLE, name)
+        for k, name in enumerate(names)
+    }
+    by_number = {
+        number: (name, {DOUBLE: "<f8", SFIXED64: "<i8"}[kind])
+        for name, (number, _, kind, _) in columns.items()
+    }
+    got: dict[str, list] = {name: [] for name in columns}
+    for _, _, message in messages:
+        for number, wire, value in _wire_fields(message.data):
+            name, dtype = by_number[number]
+            assert wire == 2  # packed
+            got[name].append(np.frombuffer(value, dtype))
+        assert message.log_time == got["time_ns"][-1][-1]  # a block's time: its last sample
+    got = {name: np.concatenate(parts) for name, parts in got.items()}
+    np.testing.assert_array_equal(
+        got["time_ns"], np.round(written["t_joint"] * 1e9).astype(np.int64)
+    )
+    np.testing.assert_array_equal(np.column_stack([got[n] for n in names[1:4]]), written["q"])
+    np.testing.assert_array_equal(np.column_stack([got[n] for n in names[4:]]), written["q_dot"])
+
+
+def test_joint_channel_decodes_with_a_protobuf_library(recorded):
+    """Google's protobuf runtime, given the schema record's FileDescriptorSet, decodes the
+    blocks, and its own encoding of them is byte for byte the file's (skipped where the
+    protobuf package is not installed: cathtrack does not need it)."""
+    pytest.importorskip("google.protobuf")
+    from google.protobuf import descriptor_pb2, descriptor_pool, json_format, message_factory
+    from mcap.reader import make_reader
+
+    path, _, written = recorded
+    with open(path, "rb") as f:
+        messages = list(make_reader(f).iter_messages(topics=["/joints"]))
+    schema = messages[0][0]
+    pool = descriptor_pool.DescriptorPool()
+    for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+        pool.Add(file)
+    JointSamples = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+    blocks = [JointSamples.FromString(message.data) for _, _, message in messages]
+    assert all(
+        b.SerializeToString() == m.data for b, (_, _, m) in zip(blocks, messages, strict=True)
+    )
+    t_ns = np.concatenate([np.array(b.time_ns, dtype=np.int64) for b in blocks])
+    np.testing.assert_array_equal(t_ns, np.round(written["t_joint"] * 1e9).astype(np.int64))
+    q_d = np.concatenate([np.array(b.q_d_mm) for b in blocks])
+    np.testing.assert_array_equal(q_d, written["q"][:, 2])
+    r_p = np.concatenate([np.array(b.q_p_dot_mm_s) for b in blocks])
+    np.testing.assert_array_equal(r_p, written["q_dot"][:, 1])
+    # protobuf's JSON mapping (what `mcap cat --json` prints) keeps the field names
+    exported = json_format.MessageToDict(blocks[1])
+    assert list(exported) == list(joint_samples.COLUMNS)
+    assert exported["q_r_rad"] == list(blocks[1].q_r_rad)
 
 
 # ------------------------------------------------------------------------------ crash safety
@@ -378,7 +598,7 @@ def test_truncated_file_keeps_the_readable_part(recorded, tmp_path):
         np.testing.assert_array_equal(got.frame.images[1], sent.images[1])
 
 
-def test_not_mcap_and_unknown_version_and_missing_joints(tmp_path, monkeypatch):
+def test_not_mcap_and_unknown_version_and_missing_joints(tmp_path):
     text = tmp_path / "notes.txt"
     text.write_text("this is not a recording\n")
     with pytest.raises(RecordingError, match="not an MCAP file"):
@@ -387,11 +607,18 @@ def test_not_mcap_and_unknown_version_and_missing_joints(tmp_path, monkeypatch):
         open_recording(tmp_path / "absent.mcap")
     rng = np.random.default_rng(5)
     frames = _frames(5, rng, images=False)
+    with pytest.raises(ValueError, match="format_version"):
+        RecordingWriter(
+            tmp_path / "v3.mcap", model_toml=MODEL_TOML, rig_toml=RIG_TOML, format_version=3
+        )
     future = tmp_path / "future.mcap"
-    monkeypatch.setattr(recording_writer, "FORMAT_VERSION", 99)
     _write(future, frames)
-    monkeypatch.undo()
-    with pytest.raises(RecordingError, match="unknown recording format version '99'"):
+    # The metadata record is outside the chunks and has no CRC: its value "2" becomes "9".
+    data = future.read_bytes()
+    key = b"format_version" + struct.pack("<I", 1)
+    assert data.count(key + b"2") == 1
+    future.write_bytes(data.replace(key + b"2", key + b"9"))
+    with pytest.raises(RecordingError, match="unknown recording format version '9'"):
         open_recording(future)
     no_joints = tmp_path / "no_joints.mcap"
     with RecordingWriter(no_joints, model_toml=MODEL_TOML, rig_toml=RIG_TOML) as writer:
@@ -442,7 +669,9 @@ def test_out_of_order_duplicates_and_nan_are_counted_once_and_lose_nothing(tmp_p
         writer.write_joints(t_joint, q, q_dot)
         for k in order:
             writer.write_frame(frames[k])
-        writer.write_frame(replace(frames[20], uv=(frames[20].uv[0] + 1.0, frames[20].uv[1])))  # duplicate
+        writer.write_frame(
+            replace(frames[20], uv=(frames[20].uv[0] + 1.0, frames[20].uv[1]))
+        )  # duplicate
         stamp = int(round(frames[25].time_s * 1e9))
         nan_uv = frames[25].uv[0].copy()
         nan_uv[0] = [float("nan"), 1.0]

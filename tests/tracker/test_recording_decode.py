@@ -1,5 +1,6 @@
-"""The recording reader's bulk paths (tracker.io.recording.scan, .decode) against the ways
-they replace: the library's chunk reader, the joined joint columns, one message at a time."""
+"""The recording reader's bulk paths (tracker.io.recording.scan, .decode, .joint_samples)
+against the ways they replace: the library's chunk reader, the joined joint columns, one
+message at a time; the protobuf joint blocks against the JSON ones, and their damage."""
 
 from __future__ import annotations
 
@@ -20,9 +21,9 @@ from mcap.writer import CompressionType, Writer
 
 from tests.tracker.test_recording import _frames, _write
 from tracker.io.limits import joints_in_range
-from tracker.io.recording import decode, open_recording
+from tracker.io.recording import decode, joint_samples, open_recording, protobuf
 from tracker.io.recording.scan import McapScan, _ChunkStream, _unpack
-from tracker.io.recording.schema import TOPIC_TRUTH
+from tracker.io.recording.schema import TOPIC_TRUTH, RecordingError
 
 SESSION_NS = (-(2**62), 2**62)
 
@@ -194,13 +195,18 @@ def test_joint_blocks_that_do_not_fit_go_the_joined_way(edit):
     assert decode._joint_columns(blocks) is None
 
 
+@pytest.mark.parametrize("version", [1, 2])
 @pytest.mark.parametrize("seed", range(3))
-def test_joint_stream_checks_count_what_the_row_checks_count(seed):
+def test_joint_stream_checks_count_what_the_row_checks_count(seed, version):
     """The whole-array shortcuts of joint_stream drop and count what the row-by-row rules
-    (NaN, range, order, repeats) do."""
+    (NaN, range, order, repeats) do, on the JSON blocks and on the same blocks in protobuf."""
     blocks = _blocks(np.random.default_rng(seed), "all")
     problems = decode.Problems()
-    t, q, q_dot = decode.joint_stream(blocks, problems, "test", SESSION_NS)
+    if version == 1:
+        columns = decode.json_joint_columns(blocks, problems, "test")
+    else:
+        columns = decode.protobuf_joint_columns(_encoded(blocks), problems, "test")
+    t, q, q_dot = decode.joint_stream(columns, problems, "test", SESSION_NS)
     joined = decode._joint_columns_joined(blocks, decode.Problems(), "test")
     t_all, q_all, r_all = joined[:3]
     good = np.isfinite(q_all).all(axis=1) & np.isfinite(r_all).all(axis=1)
@@ -212,6 +218,165 @@ def test_joint_stream_checks_count_what_the_row_checks_count(seed):
     )
     np.testing.assert_array_equal(t, np.unique(kept_t))
     assert q.shape == q_dot.shape == (t.size, 3) and np.isfinite(q).all()
+
+
+# ------------------------------------------------------------------ joints in protobuf (v2)
+def _arrays(block: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A JSON joint block's columns as arrays (null: NaN)."""
+    t = np.array(block["time_ns"], dtype=np.int64)
+    q = np.array([block[n] for n in ("q_r_rad", "q_p_mm", "q_d_mm")], dtype=float).T
+    names = ("q_r_dot_rad_s", "q_p_dot_mm_s", "q_d_dot_mm_s")
+    rates = None if block[names[0]] is None else np.array([block[n] for n in names], float).T
+    return t, q.reshape(t.size, 3), None if rates is None else rates.reshape(t.size, 3)
+
+
+def _encoded(blocks: list[dict]) -> list[bytes]:
+    return [joint_samples.encode_joint_block(*_arrays(block)) for block in blocks]
+
+
+@pytest.mark.parametrize("rates", ["all", "none", "some"])
+@pytest.mark.parametrize("seed", range(4))
+def test_protobuf_joint_columns_are_the_json_ones(rates, seed):
+    """The same blocks in protobuf (version 2) and in JSON (version 1) give the same columns;
+    the blocks of each size converted at once give what reading each on its own gives."""
+    blocks = _blocks(np.random.default_rng(seed), rates)
+    messages = _encoded(blocks)
+    t, q, r, any_rates, malformed = joint_samples.joint_columns(messages)
+    json_t, json_q, json_r, json_any = decode.json_joint_columns(blocks, decode.Problems(), "test")
+    assert malformed == 0 and any_rates == json_any
+    np.testing.assert_array_equal(t, json_t)
+    np.testing.assert_array_equal(q, json_q)
+    np.testing.assert_array_equal(r, json_r)
+    one_by_one = [joint_samples._block(m) for m in messages]
+    np.testing.assert_array_equal(t, np.concatenate([b[0] for b in one_by_one]))
+    np.testing.assert_array_equal(q, np.concatenate([b[1] for b in one_by_one]))
+
+
+def _field(number: int, wire: int, content: bytes) -> bytes:
+    if wire == protobuf.WIRE_LEN:
+        return protobuf.len_field(number, content)
+    return protobuf.key_bytes(number, wire) + content
+
+
+def _other_encodings(t: np.ndarray, q: np.ndarray, rates: np.ndarray) -> dict[str, bytes]:
+    """One block as other protobuf writers may encode it: the same message."""
+    columns = [t.astype("<i8")] + [c.astype("<f8") for c in (*q.T, *rates.T)]
+    packed = [(k + 1, c.tobytes()) for k, c in enumerate(columns)]
+    return {
+        "fields in reverse order": b"".join(_field(n, 2, c) for n, c in packed[::-1]),
+        "columns in two pieces": b"".join(_field(n, 2, c[:16]) for n, c in packed)
+        + b"".join(_field(n, 2, c[16:]) for n, c in packed),
+        "unpacked values": b"".join(
+            _field(n, protobuf.WIRE_I64, c[i : i + 8])
+            for n, c in packed
+            for i in range(0, len(c), 8)
+        ),
+        "unknown fields": protobuf.varint_field(99, 5)
+        + b"".join(_field(n, 2, c) for n, c in packed)
+        + protobuf.len_field(8, b"later")
+        + _field(12, protobuf.WIRE_I32, b"\x00" * 4),
+    }
+
+
+def test_joint_blocks_in_other_valid_encodings_read_the_same():
+    rng = np.random.default_rng(3)
+    t = 1_000_000 * np.arange(6, dtype=np.int64)
+    q, rates = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    good = joint_samples.encode_joint_block(t + 10**9, q, rates)  # a block written by cathtrack
+    for name, message in _other_encodings(t, q, rates).items():
+        got_t, got_q, got_r, any_rates, malformed = joint_samples.joint_columns(
+            [good, message, b""]
+        )
+        assert malformed == 0 and any_rates, name
+        np.testing.assert_array_equal(got_t, np.concatenate([t + 10**9, t]), err_msg=name)
+        np.testing.assert_array_equal(got_q, np.vstack([q, q]), err_msg=name)
+        np.testing.assert_array_equal(got_r, np.vstack([rates, rates]), err_msg=name)
+
+
+def _damaged_blocks() -> dict[str, bytes]:
+    """A block damaged in each way a reader must survive. The block of 5 samples with rates
+    is 7 fields of 42 bytes: key, length 40, five 8-byte numbers."""
+    t = 1_000_000 * np.arange(20, dtype=np.int64)
+    q = np.ones((20, 3))
+    block = joint_samples.encode_joint_block(t[:5], q[:5], q[:5])
+    short = joint_samples.encode_joint_block(t[:4], q[:4], q[:4])  # fields of 34 bytes
+    long = joint_samples.encode_joint_block(t, q)  # lengths of 2 bytes: 160
+    moved = bytearray(block)
+    moved[42 + 1], moved[84 + 1] = 32, 48  # q_r one sample short, q_p one long: same size
+    return {
+        "truncated in a column": block[:-3],
+        "truncated after a key": block[: 6 * 42 + 1],
+        "truncated inside a length": long[:2],
+        "a column one sample short": block[: 3 * 42] + short[3 * 34 : 4 * 34] + block[4 * 42 :],
+        "the time column one sample long": protobuf.len_field(1, t[:6].tobytes()) + block[42:],
+        "column lengths moved, same size": bytes(moved),
+        "a column under another number": block[:42] + b"\x42" + block[43:],
+        "only one rate column": block[: 5 * 42],
+        "a column of 7-byte numbers": block[:42] + protobuf.len_field(2, b"\x00" * 35) + block[84:],
+        "a column as a varint": block[:42] + protobuf.varint_field(2, 1) + block[84:],
+        "a deprecated group": block + protobuf.key_bytes(9, 3),
+        "not protobuf": b"\xff" * 20,
+        "JSON": b'{"time_ns": [1], "q_r_rad": [0.0], "q_p_mm": [0.0], "q_d_mm": [0.0]}',
+    }
+
+
+@pytest.mark.parametrize("name", list(_damaged_blocks()))
+def test_a_damaged_protobuf_joint_block_is_one_counted_loss(name):
+    """A damaged block is dropped and counted once; the blocks around it are read intact,
+    whether the damaged one has the length of a good block or not."""
+    damaged = _damaged_blocks()[name]
+    rng = np.random.default_rng(4)
+    good = []
+    for k in range(6):
+        t = 10**9 * k + 1_000_000 * np.arange(5, dtype=np.int64)
+        good.append((t, rng.normal(size=(5, 3)), rng.normal(size=(5, 3))))
+    messages = [joint_samples.encode_joint_block(*block) for block in good]
+    messages.insert(3, damaged)
+    problems = decode.Problems()
+    t, q, r, any_rates = decode.protobuf_joint_columns(messages, problems, "test")
+    assert problems.counts == {("malformed", "/joints"): 1}
+    np.testing.assert_array_equal(t, np.concatenate([b[0] for b in good]))
+    np.testing.assert_array_equal(q, np.concatenate([b[1] for b in good]))
+    np.testing.assert_array_equal(r, np.concatenate([b[2] for b in good]))
+    with pytest.raises(ValueError):
+        joint_samples._block(damaged)
+
+
+def test_protobuf_joint_samples_nan_and_out_of_order_are_counted_and_dropped_or_sorted():
+    t = 1_000_000 * np.arange(10, dtype=np.int64)
+    q = np.tile([0.1, 0.2, 0.3], (10, 1))
+    q[4, 2] = np.nan
+    first = joint_samples.encode_joint_block(t[5:], q[5:])  # the later block first
+    second = joint_samples.encode_joint_block(t[:5][::-1], q[:5][::-1])  # unsorted inside
+    problems = decode.Problems()
+    columns = decode.protobuf_joint_columns([first, second], problems, "test")
+    got_t, got_q, got_rates = decode.joint_stream(columns, problems, "test", SESSION_NS)
+    assert got_rates is None
+    np.testing.assert_array_equal(got_t, np.delete(t, 4))
+    np.testing.assert_array_equal(got_q, np.delete(q, 4, axis=0))
+    assert problems.counts[("nan_joints", "/joints")] == 1
+    assert problems.counts[("out_of_order", "/joints (samples)")] >= 1
+
+
+def test_protobuf_joint_stream_without_samples_is_a_recording_error():
+    with pytest.raises(RecordingError, match="no valid samples"):
+        decode.protobuf_joint_columns([b"\xff\xff", b"\x0a\x10"], decode.Problems(), "test")
+    with pytest.raises(RecordingError, match="no joint samples"):
+        decode.protobuf_joint_columns([b"", b""], decode.Problems(), "test")
+
+
+def test_protobuf_wire_reader_refuses_damage():
+    assert protobuf.read_varint(b"\xac\x02", 0) == (300, 2)
+    assert protobuf.varint_bytes(300) == b"\xac\x02"
+    with pytest.raises(ValueError, match="truncated"):
+        protobuf.read_varint(b"\x80\x80", 0)
+    with pytest.raises(ValueError, match="longer than 10"):
+        protobuf.read_varint(b"\xff" * 11 + b"\x01", 0)
+    with pytest.raises(ValueError, match="past the end"):
+        list(protobuf.fields(protobuf.len_field(1, b"abc")[:-1]))
+    assert [(n, w, bytes(v)) for n, w, v in protobuf.fields(protobuf.len_field(3, "ab"))] == [
+        (3, protobuf.WIRE_LEN, b"ab")
+    ]
 
 
 # --------------------------------------------------------------------------------- truth

@@ -5,16 +5,21 @@ A recording is one MCAP file (the ROS 2 bag format) with
 - metadata records ``cathtrack`` (format name and version, start time), ``model`` (the model
   TOML text), ``rig`` (the rig TOML text: views and registered base pose) and ``settings``
   (JSON of whatever made the recording);
-- JSON channels with JSON-schema schemas for the joint values (``/joints``, blocks of samples
-  at up to 1 kHz), the segmented markers of each view with their covariances and quality
-  (``/markers/front``, ``/markers/side``), the ground truth and the labels of the experiment
-  (``/truth``) and the estimates of any method (``/estimates/<method>``);
+- the joint values on ``/joints``: blocks of samples at up to 1 kHz, one packed column per
+  quantity, as protobuf ``cathtrack.JointSamples`` (format version 2; JSON in version 1,
+  which is still read);
+- JSON channels with JSON-schema schemas for the segmented markers of each view with their
+  covariances and quality (``/markers/front``, ``/markers/side``), the ground truth and the
+  labels of the experiment (``/truth``) and the estimates of any method
+  (``/estimates/<method>``);
 - the camera frames as Foxglove ``foxglove.RawImage`` (protobuf, ``mono8``) on
   ``/camera/<view>/image``, and the empty-scene prior of each camera, which the segmentation
   subtracts, on ``/camera/<view>/background``: rerun and Foxglove show both as images.
 
 Modules, by role: :mod:`~tracker.io.recording.schema` (topics, JSON schemas, message value
-types), :mod:`~tracker.io.recording.images` (camera frames), :mod:`~tracker.io.recording.writer`
+types), :mod:`~tracker.io.recording.joint_samples` (the joint blocks in protobuf),
+:mod:`~tracker.io.recording.images` (camera frames), :mod:`~tracker.io.recording.protobuf`
+(the protobuf wire format of both), :mod:`~tracker.io.recording.writer`
 (:class:`RecordingWriter`), :mod:`~tracker.io.recording.scan` (walking the MCAP records
 through damage), :mod:`~tracker.io.recording.decode` (messages to arrays) and
 :mod:`~tracker.io.recording.reader` (:func:`open_recording`, :class:`Recording`). The rig
@@ -35,6 +40,7 @@ from tracker.io.recording.scan import Damage
 from tracker.io.recording.schema import (
     FORMAT,
     FORMAT_VERSION,
+    READ_VERSIONS,
     SCHEMAS,
     TOPIC_JOINTS,
     TOPIC_TRUTH,
@@ -66,6 +72,7 @@ __all__ = [
     "JOINT_BLOCK_SAMPLES",
     "MAX_JOINT_GAP_S",
     "MarkerQuality",
+    "READ_VERSIONS",
     "ReadReport",
     "RecordedEstimate",
     "RecordedFrame",

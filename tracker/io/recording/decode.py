@@ -1,4 +1,4 @@
-"""The JSON messages of a recording turned into arrays, every problem counted once per kind.
+"""The messages of a recording turned into arrays, every problem counted once per kind.
 
 :class:`tracker.io.recording.reader.Recording` gathers each topic's messages and hands them
 here a topic at a time: their JSON parsed (:func:`json_messages`) and kept by time stamp
@@ -7,10 +7,12 @@ one array per view, ``/truth`` the labels, ``/estimates/<method>`` the estimates
 does not fit its schema, lies outside the session or beyond the physical ranges of
 :mod:`tracker.io.limits` is skipped and counted in :class:`Problems`.
 
-Reading cost (a markers-only recording with joints at 1 kHz): each frame carries 50 joint
-samples of 7 JSON numbers, about 6.7 kB, whose decompression and parsing into Python floats
-are most of the reading time; everything after the parse works on whole columns, and a
-block that does not fit the schema sends the joint stream the slower, block-by-block way.
+The joint blocks are protobuf in format version 2, taken column by column straight from
+their bytes (:mod:`tracker.io.recording.joint_samples`); in version 1 they are JSON, and at
+1 kHz (50 samples of 7 JSON numbers per frame, about 6.7 kB) their decompression and parsing
+into Python floats were most of the reading time. Everything after the parse works on whole
+columns; a version 1 block that does not fit the schema sends the joint stream the slower,
+block-by-block way.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import numpy as np
 import orjson
 
 from tracker.io.limits import MAX_ANGLE_RAD, joints_in_range, points_in_range
+from tracker.io.recording import joint_samples
 from tracker.io.recording.schema import (
     JOINT_COLUMNS,
     RATE_COLUMNS,
@@ -159,9 +162,55 @@ def _json_or_none(data: bytes) -> Any:
 
 
 # ---------------------------------------------------------------------------------- joints
-def joint_stream(blocks: list[dict], problems: Problems, source: str, session_ns: tuple[int, int]):
+def json_joint_columns(
+    blocks: list[dict], problems: Problems, source: str
+) -> tuple[Array, Array, Array, bool]:
+    """The samples of the ``/joints`` blocks of format version 1 (parsed JSON), in block
+    order: time stamps, ns, (n,); values (n, 3); rates (n, 3), NaN where not measured; and
+    whether any block measured rates. A block that does not fit the schema is counted and
+    dropped.
+
+    Raises
+    ------
+    RecordingError
+        No block with samples fits the schema.
+    """
+    columns = _joint_columns(blocks)
+    if columns is None:  # a block that does not fit the schema, or no sample
+        columns = _joint_columns_joined(blocks, problems, source)
+    return columns
+
+
+def protobuf_joint_columns(
+    messages: list[bytes], problems: Problems, source: str
+) -> tuple[Array, Array, Array, bool]:
+    """:func:`json_joint_columns` for the protobuf blocks of format version 2
+    (:func:`tracker.io.recording.joint_samples.joint_columns`)."""
+    t, q, r, any_rates, malformed = joint_samples.joint_columns(messages)
+    if malformed:
+        problems.add("malformed", TOPIC_JOINTS, malformed)
+    if t.size == 0 and malformed == len(messages):
+        raise RecordingError(f"{source}: channel {TOPIC_JOINTS} holds no valid samples")
+    if t.size == 0:
+        raise RecordingError(f"{source}: channel {TOPIC_JOINTS} holds no joint samples")
+    return t, q, r, any_rates
+
+
+def joint_stream(
+    columns: tuple[Array, Array, Array, bool],
+    problems: Problems,
+    source: str,
+    session_ns: tuple[int, int],
+):
     """The joint samples of the ``/joints`` blocks, sorted; samples that are NaN, repeated,
     stamped outside ``session_ns`` (log times, ns) or beyond the robot's ranges dropped.
+
+    Parameters
+    ----------
+    columns : tuple
+        The blocks' samples in block order (:func:`json_joint_columns`,
+        :func:`protobuf_joint_columns`): time stamps, ns, (n,); values (n, 3); rates (n, 3);
+        whether any block measured rates.
 
     Returns
     -------
@@ -174,9 +223,6 @@ def joint_stream(blocks: list[dict], problems: Problems, source: str, session_ns
     RecordingError
         No valid joint sample.
     """
-    columns = _joint_columns(blocks)
-    if columns is None:  # a block that does not fit the schema, or no sample
-        columns = _joint_columns_joined(blocks, problems, source)
     t, q, r, any_rates = columns
     # Each check first looks at the whole array at once (a reduction along rows of three
     # costs ten times more) and picks the bad rows only when there are some.

@@ -2,17 +2,19 @@
 
 Encoding uses the ``foxglove-sdk`` message classes. The SDK has no decoder and no protobuf
 runtime is installed, so :func:`decode_image` reads the few top-level fields it needs with
-a minimal protobuf wire-format reader (field numbers in docs/recording.md).
+the wire-format reader of :mod:`tracker.io.recording.protobuf` (field numbers in
+docs/recording.md).
 """
 
 from __future__ import annotations
 
-import struct
 from typing import Any
 
 import numpy as np
 from foxglove import messages
 from foxglove.messages import RawImage
+
+from tracker.io.recording import protobuf
 
 Array = np.ndarray
 
@@ -39,44 +41,15 @@ def encode_image(image: Array, frame_id: str, time_ns: int) -> bytes:
     ).encode()
 
 
-def _varint(buf: memoryview, pos: int) -> tuple[int, int]:
-    result = shift = 0
-    while True:
-        if pos >= len(buf):
-            raise ValueError("truncated varint")
-        byte = buf[pos]
-        pos += 1
-        result |= (byte & 0x7F) << shift
-        if byte < 0x80:
-            return result, pos
-        shift += 7
-
-
 def _protobuf_fields(data: bytes) -> dict[int, Any]:
-    """Top-level fields of a protobuf message: number -> int (varint/fixed) or memoryview."""
-    buf = memoryview(data)
-    fields: dict[int, Any] = {}
-    pos = 0
-    while pos < len(buf):
-        key, pos = _varint(buf, pos)
-        number, wire = key >> 3, key & 7
-        if wire == 0:
-            fields[number], pos = _varint(buf, pos)
-        elif wire == 1:
-            fields[number] = struct.unpack_from("<Q", buf, pos)[0]
-            pos += 8
-        elif wire == 2:
-            length, pos = _varint(buf, pos)
-            if pos + length > len(buf):
-                raise ValueError("truncated length-delimited field")
-            fields[number] = buf[pos : pos + length]
-            pos += length
-        elif wire == 5:
-            fields[number] = struct.unpack_from("<I", buf, pos)[0]
-            pos += 4
-        else:
-            raise ValueError(f"unsupported protobuf wire type {wire}")
-    return fields
+    """Top-level fields of a protobuf message: number -> int (varint, fixed32, fixed64) or
+    memoryview (length-delimited); the last of a repeated number."""
+    out: dict[int, Any] = {}
+    for number, wire, value in protobuf.fields(data):
+        if wire in (protobuf.WIRE_I64, protobuf.WIRE_I32):
+            value = int.from_bytes(value, "little")
+        out[number] = value
+    return out
 
 
 def decode_image(data: bytes) -> Array:

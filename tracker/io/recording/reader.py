@@ -42,7 +42,7 @@ from tracker.io.recording.images import decode_image
 from tracker.io.recording.scan import ChunkRecords, Damage, McapScan
 from tracker.io.recording.schema import (
     FORMAT,
-    FORMAT_VERSION,
+    READ_VERSIONS,
     TOPIC_JOINTS,
     TOPIC_TRUTH,
     VIEWS,
@@ -154,7 +154,7 @@ class Recording:
         self._session_ns: tuple[int, int] | None = None  # known once 'cathtrack' is read
         self._raw: dict[str, tuple[list[int], list]] = {}  # topic: log times, data (scan)
         self._sinks: dict[int, tuple] = {}  # channel id: topic and where its messages go
-        self._joint_blocks: list[dict] = []
+        self._joint_blocks: list = []  # parsed JSON (version 1) or protobuf bytes (2)
         self._per_frame: dict[str, decode.Store] = {}  # markers, truth, images by log time
         self._estimates_raw: dict[str, decode.Store] = {}
         self._chunk_cache: tuple[int, list] | None = None
@@ -281,6 +281,9 @@ class Recording:
             if topic.startswith("/camera/"):
                 self._per_frame[topic] = decode.Store.first_of(stamps, data, topic, problems)
                 continue
+            if topic == TOPIC_JOINTS and self._joints_in_protobuf():
+                self._joint_blocks += data  # decoded with the other checks (_assemble)
+                continue
             payloads = decode.json_messages(data, topic, problems)
             parsed = [i for i, payload in enumerate(payloads) if payload is not None]
             payloads = [payloads[i] for i in parsed]
@@ -299,6 +302,12 @@ class Recording:
             else:
                 self._per_frame[topic] = store
         self._raw = {}
+
+    def _joints_in_protobuf(self) -> bool:
+        """Whether ``/joints`` is protobuf (format version 2) rather than JSON (version 1);
+        a file of another version is refused later (:meth:`_check_metadata`)."""
+        version = self._metadata_raw.get("cathtrack", {}).get("format_version")
+        return version is not None and version != "1"
 
     @staticmethod
     def _session(start_ns: int) -> tuple[int, int]:
@@ -409,10 +418,11 @@ class Recording:
                 f' metadata record naming the format "{FORMAT}"{damaged})'
             )
         version = info.get("format_version", "")
-        if version != str(FORMAT_VERSION):
+        if version not in [str(v) for v in READ_VERSIONS]:
+            known = " and ".join(str(v) for v in READ_VERSIONS)
             raise RecordingError(
                 f"{self.path}: unknown recording format version {version!r}; this cathtrack"
-                f" reads version {FORMAT_VERSION}"
+                f" reads versions {known}"
             )
         for name in ("model", "rig"):
             if "toml" not in self._metadata_raw.get(name, {}):
@@ -446,9 +456,11 @@ class Recording:
         frame_topics = [f(view) for view in self.views for f in (markers_topic, image_topic)]
         has_frames = any(self._per_frame.get(topic) for topic in frame_topics)
         if self.report.messages.get(TOPIC_JOINTS):
-            t_ns, q, q_dot = decode.joint_stream(
-                self._joint_blocks, self._problems, source, self._session_ns
-            )
+            if self.metadata.format_version == 1:
+                columns = decode.json_joint_columns(self._joint_blocks, self._problems, source)
+            else:
+                columns = decode.protobuf_joint_columns(self._joint_blocks, self._problems, source)
+            t_ns, q, q_dot = decode.joint_stream(columns, self._problems, source, self._session_ns)
             self.joints = JointHistory((t_ns - start_ns) / 1e9, q, q_dot)
         elif has_frames:
             raise RecordingError(

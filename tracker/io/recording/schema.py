@@ -1,7 +1,8 @@
 """What a recording holds: format, topics, JSON schemas and the value types of its messages.
 
 The format is documented in docs/recording.md; :mod:`tracker.io.recording.writer` writes it,
-:mod:`tracker.io.recording.reader` reads it back.
+:mod:`tracker.io.recording.reader` reads it back. The joint stream's protobuf schema (format
+version 2) is in :mod:`tracker.io.recording.joint_samples`.
 """
 
 from __future__ import annotations
@@ -19,8 +20,14 @@ from models.imaging import DEFAULT_VIEW_NAMES
 Array = np.ndarray
 
 FORMAT = "cathtrack-recording"
-FORMAT_VERSION = 1
-"""Version of the recording format that this package writes and reads."""
+FORMAT_VERSION = 2
+"""Version of the recording format that this package writes (by default)."""
+READ_VERSIONS = (1, 2)
+"""Versions of the recording format that this package reads (and can write).
+
+Version 2 changed only the ``/joints`` channel: protobuf ``cathtrack.JointSamples`` instead
+of JSON (:mod:`tracker.io.recording.joint_samples`); everything else is as in version 1.
+"""
 
 VIEWS = DEFAULT_VIEW_NAMES
 """Views of a recording whose rig names none (the bi-plane rig); otherwise the rig's names."""
@@ -63,22 +70,25 @@ JOINT_COLUMNS = ("q_r_rad", "q_p_mm", "q_d_mm")
 RATE_COLUMNS = ("q_r_dot_rad_s", "q_p_dot_mm_s", "q_d_dot_mm_s")
 """Columns of the joint rates in /joints (optional)."""
 
-SCHEMAS: dict[str, dict] = {
-    "cathtrack.JointSamples": {
-        "title": "cathtrack.JointSamples",
-        "description": (
-            "A block of joint samples in time order, one column per quantity (all columns of "
-            "the same length): sample times on the clock of the MCAP log_time, the joint "
-            "values, and their rates when the source measures them (all three rate columns, "
-            "or none). null: a value that was not available."
-        ),
-        "type": "object",
-        "properties": {
-            "time_ns": {"type": "array", "items": {"type": "integer"}},
-            **{name: _COLUMN for name in JOINT_COLUMNS + RATE_COLUMNS},
-        },
-        "required": ["time_ns", *JOINT_COLUMNS],
+JOINT_SAMPLES = "cathtrack.JointSamples"
+JSON_JOINT_SAMPLES = {
+    "title": JOINT_SAMPLES,
+    "description": (
+        "A block of joint samples in time order, one column per quantity (all columns of "
+        "the same length): sample times on the clock of the MCAP log_time, the joint "
+        "values, and their rates when the source measures them (all three rate columns, "
+        "or none). null: a value that was not available."
+    ),
+    "type": "object",
+    "properties": {
+        "time_ns": {"type": "array", "items": {"type": "integer"}},
+        **{name: _COLUMN for name in JOINT_COLUMNS + RATE_COLUMNS},
     },
+    "required": ["time_ns", *JOINT_COLUMNS],
+}
+"""The JSON schema of ``/joints`` in format version 1 (version 2: protobuf)."""
+
+SCHEMAS: dict[str, dict] = {
     "cathtrack.Markers": {
         "title": "cathtrack.Markers",
         "description": (
@@ -145,14 +155,19 @@ SCHEMAS: dict[str, dict] = {
         "required": ["delta_L_rad", "std_rad", "q_r_rad", "flags"],
     },
 }
+"""The JSON schemas of the JSON channels, by name (the same in format versions 1 and 2)."""
+SCHEMAS_V1 = {JOINT_SAMPLES: JSON_JOINT_SAMPLES, **SCHEMAS}
+"""The JSON schemas of format version 1, whose ``/joints`` is JSON too."""
 _TOPIC_SCHEMA = {
-    TOPIC_JOINTS: "cathtrack.JointSamples",
+    TOPIC_JOINTS: JOINT_SAMPLES,
     TOPIC_TRUTH: "cathtrack.Truth",
 }
 
 
 def schema_for_topic(topic: str) -> str | None:
-    """Name of the JSON schema of a cathtrack topic (None for image topics and unknown ones)."""
+    """Name of the schema of a cathtrack topic whose messages are not images: that of a JSON
+    schema in :data:`SCHEMAS` or, for ``/joints``, ``cathtrack.JointSamples`` (protobuf; JSON
+    in format version 1). None for image topics and unknown ones."""
     if topic.startswith("/estimates/"):
         return "cathtrack.Estimate"
     if topic.startswith("/markers/"):

@@ -2,6 +2,9 @@
 
 Crash safety: the writer closes a chunk when it holds one second of log time or 4 MiB,
 whichever comes first, and writes it out, so a crash loses at most the last second.
+
+It writes format version 2 (the joint blocks in protobuf, :mod:`.joint_samples`); version 1
+(the joint blocks in JSON) on request, for tools and tests that need an older file.
 """
 
 from __future__ import annotations
@@ -19,13 +22,16 @@ from mcap.writer import CompressionType, Writer
 
 from models.rig_file import view_names
 from tracker import __version__
+from tracker.io.recording import joint_samples
 from tracker.io.recording.images import encode_image, image_schema
 from tracker.io.recording.schema import (
     FORMAT,
     FORMAT_VERSION,
     JOINT_COLUMNS,
     RATE_COLUMNS,
+    READ_VERSIONS,
     SCHEMAS,
+    SCHEMAS_V1,
     TOPIC_JOINTS,
     TOPIC_TRUTH,
     FrameLabels,
@@ -71,6 +77,9 @@ class RecordingWriter:
         A chunk is written when it spans ``chunk_seconds`` of log time or holds ``chunk_bytes``.
     fsync : bool
         Also ``os.fsync`` at every chunk (survives a power cut, not only a crash).
+    format_version : int, optional
+        The format version to write: 2 (default, :data:`FORMAT_VERSION`), or 1 (joint
+        blocks in JSON) for a reader that knows only version 1.
     """
 
     def __init__(
@@ -85,12 +94,17 @@ class RecordingWriter:
         chunk_seconds: float = CHUNK_SECONDS,
         chunk_bytes: int = CHUNK_BYTES,
         fsync: bool = False,
+        format_version: int | None = None,
     ) -> None:
+        format_version = FORMAT_VERSION if format_version is None else format_version
+        if format_version not in READ_VERSIONS:
+            raise ValueError(f"format_version must be one of {READ_VERSIONS}, got {format_version}")
         if point_unit not in ("px", "mm"):
             raise ValueError(f"point_unit must be 'px' or 'mm', got {point_unit!r}")
         if not chunk_seconds > 0:
             raise ValueError(f"chunk_seconds must be positive, got {chunk_seconds}")
         self.path = Path(path)
+        self.format_version = int(format_version)
         self.point_unit = point_unit
         self.start_time_ns = int(start_time_ns)
         self._chunk_ns = int(chunk_seconds * 1e9)
@@ -104,7 +118,7 @@ class RecordingWriter:
             "cathtrack",
             {
                 "format": FORMAT,
-                "format_version": str(FORMAT_VERSION),
+                "format_version": str(self.format_version),
                 "start_time_ns": str(self.start_time_ns),
                 "writer": f"cathtrack {__version__}",
             },
@@ -116,7 +130,9 @@ class RecordingWriter:
         self._channels: dict[str, int] = {}
         self._chunk_start_ns: int | None = None
         self._flush_after_next = False
-        self._joints: list[tuple[int, list, list | None]] = []
+        # Pending joint samples, in pieces as given: (time stamps ns, values, rates or None).
+        self._joints: list[tuple[Array, Array, Array | None]] = []
+        self._joint_count = 0
         self._closed = False
         try:
             self.views = view_names(tomllib.loads(rig_toml), "rig")
@@ -131,9 +147,13 @@ class RecordingWriter:
         if channel is not None:
             return channel
         name = schema_for_topic(topic)
-        if name is not None:
+        if topic == TOPIC_JOINTS and self.format_version >= 2:
+            encoding = schema_encoding = "protobuf"
+            schema_data = joint_samples.FILE_DESCRIPTOR_SET
+        elif name is not None:
             encoding, schema_encoding = "json", "jsonschema"
-            schema_data = json.dumps(SCHEMAS[name], indent=1).encode()
+            schemas = SCHEMAS if self.format_version >= 2 else SCHEMAS_V1
+            schema_data = json.dumps(schemas[name], indent=1).encode()
         else:
             schema = image_schema()
             name, schema_encoding, encoding = schema.name, schema.encoding, "protobuf"
@@ -177,35 +197,48 @@ class RecordingWriter:
     def write_joints(self, time_s, q, q_dot=None) -> None:
         """Joint samples: one (``time_s`` float, ``q`` (3,)) or many (``(n,)``, ``(n, 3)``).
 
+        Parameters
+        ----------
+        time_s : float or array, shape (n,)
+            Session times of the samples, s.
+        q : array, shape (3,) or (n, 3)
+            Joint values q_r (rad), q_p (mm), q_d (mm); NaN: not available.
+        q_dot : array, shape (3,) or (n, 3), optional
+            Their rates (rad/s, mm/s, mm/s), if the source measures them.
+
         Samples are buffered into blocks of up to :data:`JOINT_BLOCK_SAMPLES`; a frame, an
-        estimate or :meth:`close` writes the pending block first.
+        estimate or :meth:`close` writes the pending block first, and so does a change
+        between samples with and without rates (a block has all three rates or none).
         """
         t = np.atleast_1d(np.asarray(time_s, dtype=float))
-        q = np.asarray(q, dtype=float).reshape(t.size, 3)
-        rates = None if q_dot is None else np.asarray(q_dot, dtype=float).reshape(t.size, 3)
+        # Copies: the samples wait in the buffer while the caller may reuse its arrays.
+        q = np.array(q, dtype=float).reshape(t.size, 3)
+        rates = None if q_dot is None else np.array(q_dot, dtype=float).reshape(t.size, 3)
         if self._joints and (rates is None) != (self._joints[-1][2] is None):
             self._write_joint_block()
-        stamps = [self._time_ns(x) for x in t.tolist()]
-        q_rows = json_rows(q)
-        rate_rows = [None] * t.size if rates is None else json_rows(rates)
-        for stamp, row, rate in zip(stamps, q_rows, rate_rows, strict=True):
-            self._joints.append((stamp, row, rate if rates is not None else None))
-            if len(self._joints) >= JOINT_BLOCK_SAMPLES:
+        stamps = np.array([self._time_ns(x) for x in t.tolist()], dtype=np.int64)
+        start = 0
+        while start < t.size:
+            end = min(t.size, start + JOINT_BLOCK_SAMPLES - self._joint_count)
+            piece = slice(start, end)
+            self._joints.append((stamps[piece], q[piece], None if rates is None else rates[piece]))
+            self._joint_count += end - start
+            start = end
+            if self._joint_count >= JOINT_BLOCK_SAMPLES:
                 self._write_joint_block()
 
     def _write_joint_block(self) -> None:
         if not self._joints:
             return
-        block, self._joints = self._joints, []
-        message: dict[str, list] = {"time_ns": [stamp for stamp, _, _ in block]}
-        rows = [row if row is not None else [None] * 3 for _, row, _ in block]
-        for k, name in enumerate(JOINT_COLUMNS):
-            message[name] = [row[k] for row in rows]
-        if any(rate is not None for _, _, rate in block):
-            rates = [rate if rate is not None else [None] * 3 for _, _, rate in block]
-            for k, name in enumerate(RATE_COLUMNS):
-                message[name] = [rate[k] for rate in rates]
-        self.write_raw(TOPIC_JOINTS, block[-1][0], encode_json(message))
+        pieces, self._joints, self._joint_count = self._joints, [], 0
+        stamps = np.concatenate([t for t, _, _ in pieces])
+        q = np.concatenate([values for _, values, _ in pieces])
+        rates = None if pieces[0][2] is None else np.concatenate([r for _, _, r in pieces])
+        if self.format_version >= 2:
+            data = joint_samples.encode_joint_block(stamps, q, rates)
+        else:
+            data = _json_joint_block(stamps, q, rates)
+        self.write_raw(TOPIC_JOINTS, int(stamps[-1]), data)
 
     def write_background(self, view: str, image: Array, time_s: float = 0.0) -> None:
         """The empty-scene prior image of one camera (needed to segment its frames)."""
@@ -298,3 +331,17 @@ class RecordingWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _json_joint_block(time_ns: Array, q: Array, q_dot: Array | None) -> bytes:
+    """A ``/joints`` message of format version 1: JSON columns, null for a sample with a value
+    that is not finite (strict JSON has no NaN; a whole row, as in the values' rows)."""
+    message: dict[str, list] = {"time_ns": time_ns.tolist()}
+    for names, values in ((JOINT_COLUMNS, q), (RATE_COLUMNS, q_dot)):
+        rows = [] if values is None else json_rows(values)
+        if names is RATE_COLUMNS and all(row is None for row in rows):
+            continue  # no rate known in the block: no rate columns (as version 1 wrote)
+        rows = [row if row is not None else [None] * 3 for row in rows]
+        for k, name in enumerate(names):
+            message[name] = [row[k] for row in rows]
+    return encode_json(message)
