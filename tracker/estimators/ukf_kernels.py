@@ -110,6 +110,43 @@ def _solve_lower(L, b):
         b[i] = t / L[i, i]
 
 
+@numba.njit(cache=True, nogil=True)
+def _lu_solve(A, b, work):
+    """Solve A x = b in place (b (m,) or (m, k)) by Gaussian elimination with partial
+    pivoting on a copy ``work`` of A; log |det A| (-inf if singular)."""
+    m = A.shape[0]
+    for i in range(m):
+        for j in range(m):
+            work[i, j] = A[i, j]
+    logdet = 0.0
+    for col in range(m):
+        pivot = col
+        for i in range(col + 1, m):
+            if abs(work[i, col]) > abs(work[pivot, col]):
+                pivot = i
+        if work[pivot, col] == 0.0:
+            return -math.inf
+        if pivot != col:
+            for j in range(m):
+                work[col, j], work[pivot, j] = work[pivot, j], work[col, j]
+            for j in range(b.shape[1]):
+                b[col, j], b[pivot, j] = b[pivot, j], b[col, j]
+        logdet += math.log(abs(work[col, col]))
+        for i in range(col + 1, m):
+            f = work[i, col] / work[col, col]
+            for j in range(col, m):
+                work[i, j] -= f * work[col, j]
+            for j in range(b.shape[1]):
+                b[i, j] -= f * b[col, j]
+    for col in range(m - 1, -1, -1):
+        for j in range(b.shape[1]):
+            t = b[col, j]
+            for k in range(col + 1, m):
+                t -= work[col, k] * b[k, j]
+            b[col, j] = t / work[col, col]
+    return logdet
+
+
 # ------------------------------------------------------------------------------ predict
 @numba.njit(cache=True, nogil=True)
 def cap_rows(P, max_variance):
