@@ -8,9 +8,10 @@ OpenIGTLink, rerun, recordings, CSV) differ. Joint values come from a
 :class:`~tracker.io.udp.JointReceiver`, interpolated to each image time stamp.
 
 Real time (docs/live.md, "Real time"): the loop's own thread does only what the controller
-waits for: segmentation (in a region around the markers predicted from the last estimate),
-reconstruction, the estimator and the sinks given to it (the estimate datagram); every other
-output runs behind a :class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source
+waits for: segmentation (in a region around the catheter predicted for this frame once the
+last estimate was sent), joint values at the image time, reconstruction, the estimator and
+the sinks given to it (the estimate datagram); every other output runs behind a
+:class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source
 (cameras) is captured in its own thread and the loop always takes the newest frame
 (:class:`~tracker.live.sources.NewestOnly`): the older ones are dropped and counted, never
 processed late.
@@ -47,11 +48,13 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
 from tracker.io.udp import JointReceiver
+from tracker.live.pacing import FramePace
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
 from tracker.live.summary import LatencyRecorder, LiveSummary
@@ -70,6 +73,12 @@ REBASE_AFTER = 5
 """Consistent frames rejected for their time in a row that make a new time base."""
 ROI_POINTS = 12
 """Points along the predicted catheter that outline the segmentation's region of interest."""
+ROI_TIME_TOLERANCE = 0.5
+"""A region predicted for the next frame serves a frame this far from the predicted time, in
+frame periods (further: a frame came late or others were dropped; the segmenter then
+searches around the last frame's catheter)."""
+PRIME_LEAD_S = 0.003
+"""How long before a frame is due the loop primes itself for it (:meth:`LiveTracker.prime`), s."""
 
 
 def _report_stderr(message: str) -> None:
@@ -150,8 +159,9 @@ class LiveTracker:
         Anything with ``segment(images, predicted_px=None)`` (one image per view) returning
         an object with ``uv`` and ``cov`` (one array per view; :class:`PairSegmenter`);
         needed when the source yields images. ``predicted_px`` (one array of points per
-        view, px) is where the last estimate puts the catheter at this frame's joints: the
-        segmenter searches around it first.
+        view, px) is where the last estimate puts the catheter at this frame's time: the
+        segmenter searches around it first. It is predicted off the critical path, once the
+        last frame's estimate was sent and again when the frame is due (:meth:`prime`).
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -168,6 +178,12 @@ class LiveTracker:
         The interpreter's thread switch interval during :meth:`run` (None: unchanged). A
         short one bounds how long the loop waits for the interpreter when another thread
         (a queued sink, the capture) holds it.
+    cv_threads : int or None
+        OpenCV's worker threads during :meth:`run` (None: unchanged). One: the segmentation
+        of a pair is too short to gain from splitting its image operations, and a split
+        waits for a worker whenever the other cores are busy (sinks, the cameras).
+    prime_lead_s : float or None
+        Prime the loop this long before a frame is due (None: never), s; see :meth:`prime`.
     """
 
     def __init__(
@@ -183,6 +199,8 @@ class LiveTracker:
         max_hold_s: float = MAX_HOLD_S,
         max_time_jump_s: float = MAX_TIME_JUMP_S,
         switch_interval_s: float | None = 0.0005,
+        cv_threads: int | None = 1,
+        prime_lead_s: float | None = PRIME_LEAD_S,
     ) -> None:
         self.reconstructor = reconstructor
         self.estimator = estimator
@@ -193,6 +211,8 @@ class LiveTracker:
         self.max_hold_s = float(max_hold_s)
         self.max_time_jump_s = float(max_time_jump_s)
         self.switch_interval_s = switch_interval_s
+        self.cv_threads = cv_threads
+        self.prime_lead_s = prime_lead_s
         self.idle = threading.Event()  # set while the loop waits for a frame
         self.idle.set()
         self._sinks: list[_SinkEntry] = []
@@ -206,6 +226,10 @@ class LiveTracker:
         self._last_arrival_s: float | None = None
         self._odd_times: list[float] = []  # consecutive frames rejected for their time
         self._last_delta_L_rad: float | None = None  # of the last valid estimate (ROI)
+        self.pace = FramePace()  # when the next frame is due
+        self._primed = False  # for the frame due
+        self._images = False  # the last frame was images (segmented here)
+        self._roi: tuple[float, tuple[Array, ...]] | None = None  # (for time, px per view)
         self._roi_arclengths = np.linspace(
             0.0, reconstructor.catheter.length_mm, ROI_POINTS
         )
@@ -288,6 +312,8 @@ class LiveTracker:
         self.estimator.reset()
         self.reconstructor.reset()
         self._last_delta_L_rad = None
+        self._roi = None
+        self.pace.reset()
         return self._accept_time(time_s, now)
 
     def _accept_time(self, time_s: float, now: float) -> bool:
@@ -311,20 +337,78 @@ class LiveTracker:
         q = sample.q if np.all(np.isfinite(sample.q)) else np.zeros(3)
         return q, sample.q_dot, status
 
-    def _predicted_px(self, q: Array) -> tuple[Array, ...] | None:
-        """The catheter at the last valid estimate and these joints, in every view, px."""
-        if self._last_delta_L_rad is None:
-            return None
+    def _predict_region(self, time_s: float, q: Array) -> None:
+        """Where the catheter will be in the views at ``time_s`` with the joints ``q``.
+
+        The model at the last valid estimate, px per view, for the segmentation of the frame
+        at ``time_s`` (None without a valid estimate: the segmenter then searches around the
+        last frame's catheter, or the whole image).
+        """
+        self._roi = None
+        if self._last_delta_L_rad is None or not np.all(np.isfinite(q)):
+            return
         r = self.reconstructor
         try:
             points_b = r.catheter.backbone(q, self._last_delta_L_rad, self._roi_arclengths)
         except ValueError:
-            return None
+            return
         points_w = r.pose.world_from_base(points_b)
-        return tuple(view.project(points_w) for view in r.rig.views)
+        self._roi = (time_s, tuple(view.project(points_w) for view in r.rig.views))
 
-    def _segment(self, time_s: float, images, q: Array) -> SegmentedMarkers:
-        predicted = self._predicted_px(q)
+    def _region_for(self, time_s: float) -> tuple[Array, ...] | None:
+        """The region predicted for a frame at ``time_s``, if it was predicted for about then."""
+        roi, period_s = self._roi, self.pace.period_s
+        if roi is None or period_s is None:
+            return None
+        if abs(time_s - roi[0]) > ROI_TIME_TOLERANCE * period_s:
+            return None
+        return roi[1]
+
+    @staticmethod
+    def _moved_on(q: Array, q_dot: Array | None, dt_s: float) -> Array:
+        """Joint values ``dt_s`` later at their rates (as they are without finite rates).
+
+        The motion's second order over one frame period is far below the padding of the
+        segmentation's region (40 px).
+        """
+        if q_dot is None or not np.all(np.isfinite(q_dot)):
+            return q
+        return q + q_dot * dt_s
+
+    def prime(self, now: float | None = None) -> bool:
+        """Get ready for the frame due: called while the loop waits; True if it primed.
+
+        Once per frame, :data:`PRIME_LEAD_S` before the frame is due
+        (:class:`~tracker.live.pacing.FramePace`): the joint datagrams are drained and
+        sampled at the frame's expected time, and the catheter's region in its images
+        predicted from them. That is work the frame needs anyway, done with the newest
+        joints; and it brings the loop's code and data back into the processor's caches,
+        which the other threads and processes used while the loop waited (the first stage of
+        a frame otherwise pays for it: ~0.6 ms a frame on a 2-core machine). From then until
+        the frame comes (at most one lead past its due time), the queued sinks pause, so
+        that they neither take those caches again nor hold the interpreter when it comes.
+        """
+        now = self.monotonic() if now is None else now
+        due_s = self.pace.due_s(self._speed)
+        if self._primed:
+            if now > due_s + self.prime_lead_s:
+                self.idle.set()  # the frame is late: let the sinks work meanwhile
+            return False
+        if self.prime_lead_s is None or now < due_s - self.prime_lead_s or self.joints is None:
+            return False
+        self._primed = True
+        self.idle.clear()
+        time_s = self.pace.next_time_s
+        self.joints.poll()
+        sample = self.joints.sample(time_s)
+        if self._images and sample.status in (JointStatus.OK, JointStatus.HELD):
+            # Held: the newest values, moved on to the frame's time (a few ms).
+            ahead_s = max(sample.age_s, 0.0)
+            self._predict_region(time_s, self._moved_on(sample.q, sample.q_dot, ahead_s))
+        return True
+
+    def _segment(self, time_s: float, images) -> SegmentedMarkers:
+        predicted = self._region_for(time_s)
         if predicted is None:
             seg = self.segmenter.segment(images)
         else:
@@ -358,17 +442,18 @@ class LiveTracker:
         time_s = float(item[0] if is_images else item.time_s)
         if not self._admit(time_s, now):
             return None
+        self.pace.add(time_s, received_s)
+        self._primed = False
         reference = time_s if self.time_is_monotonic else received_s
         self.age.add(now - reference)
 
         frame = item if isinstance(item, Frame) else None
         try:
+            # Segmentation first: it needs no joint values (its region was predicted after
+            # the last frame), and the joints received meanwhile are drained with the rest.
+            markers = self._segment(time_s, item[1]) if is_images else item
             q, q_dot, status = self._joints_at(time_s, frame)
             if frame is None:
-                if is_images:
-                    markers = self._segment(time_s, item[1], q)
-                else:
-                    markers = item
                 frame = markers.frame(q, q_dot)
                 if is_images:
                     frame = dataclasses.replace(frame, images=tuple(item[1]))
@@ -421,6 +506,14 @@ class LiveTracker:
         latency_s = self.monotonic() - reference
         self.latency.add(latency_s)
         self._dispatch(frame, observation, estimate, latency_s, status)
+        self._images = is_images
+        if is_images:
+            # For the next frame, now that the controller has its estimate (again with newer
+            # joints when the loop primes itself for that frame).
+            self._roi = None
+            next_time_s = self.pace.next_time_s
+            if next_time_s is not None and not status & PREDICT_ONLY:
+                self._predict_region(next_time_s, self._moved_on(q, q_dot, next_time_s - time_s))
         self.cycle.add(self.monotonic() - reference)
         return LiveResult(frame, observation, estimate, latency_s, status)
 
@@ -491,9 +584,11 @@ class LiveTracker:
         stop = _StopRequest()
         if handle_signals:
             stop.install()
-        switch_interval_s = sys.getswitchinterval()
+        switch_interval_s, cv_threads = sys.getswitchinterval(), cv2.getNumThreads()
         if self.switch_interval_s is not None:
             sys.setswitchinterval(self.switch_interval_s)
+        if self.cv_threads is not None:
+            cv2.setNumThreads(self.cv_threads)
         started = self.monotonic()
         last_item_s = started
         reason = "source exhausted"
@@ -518,7 +613,7 @@ class LiveTracker:
                     break
                 now = self.monotonic()
                 if entry is None:
-                    if self.joints is not None:
+                    if not self.prime(now) and self.joints is not None:
                         self.joints.poll()
                     if idle_timeout_s is not None and now - last_item_s > idle_timeout_s:
                         reason = f"no frame for {idle_timeout_s:g} s"
@@ -534,7 +629,9 @@ class LiveTracker:
             reason = "interrupted"
         finally:
             stop.closing = True
+            self.idle.set()  # primed for a frame that never came: the sinks must not wait
             sys.setswitchinterval(switch_interval_s)
+            cv2.setNumThreads(cv_threads)
             self.summary.stop_reason = reason
             self.summary.duration_s = self.monotonic() - started
             try:

@@ -1,0 +1,229 @@
+"""The live loop's work off the critical path: the region of interest predicted for the next
+frame, the frame pace and the priming just before a frame is due (tracker/live/pacing.py)."""
+
+from __future__ import annotations
+
+import math
+import socket
+import types
+
+import cv2
+import numpy as np
+import pytest
+
+from replay.simulation.sources import session_joints, simulated_session
+from tracker.estimators import make_estimator
+from tracker.io.datagrams import encode_joints
+from tracker.io.udp import JointReceiver
+from tracker.live.loop import PRIME_LEAD_S, ROI_POINTS, LiveTracker
+from tracker.live.pacing import FramePace
+from tracker.live.sinks import MemorySink
+from tracker.live.sources import ImageSet
+from tracker.reconstruction import Reconstructor
+
+LOOPBACK = "127.0.0.1"
+JOINT_RATE_HZ = 1000
+
+
+@pytest.fixture(scope="module")
+def session():
+    return simulated_session(duration_s=1.0, frame_rate_hz=20.0, noise=0.1, seed=3)
+
+
+class StandInSegmenter:
+    """Returns the points of the frame whose index the images carry; keeps every region."""
+
+    def __init__(self, frames):
+        self.frames = frames
+        self.regions = []
+
+    def segment(self, images, predicted_px=None):
+        self.regions.append(
+            None if predicted_px is None else tuple(np.copy(p) for p in predicted_px)
+        )
+        frame = self.frames[int(images[0][0, 0])]
+        return types.SimpleNamespace(uv=frame.uv, cov=frame.cov)
+
+
+def images_of(session, k):
+    """An image pair standing for frame ``k`` (its index in every pixel)."""
+    return ImageSet(session.frames[k].time_s, (np.full((2, 2), k), np.full((2, 2), k)))
+
+
+class Joints:
+    """A joint receiver fed by hand with the session's motion at 1 kHz, over loopback."""
+
+    def __init__(self):
+        self.receiver = JointReceiver(port=0, clock="sender")
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.next = 0
+
+    def send_until(self, time_s):
+        while self.next / JOINT_RATE_HZ <= time_s + 1e-9:
+            t = self.next / JOINT_RATE_HZ
+            self.sock.sendto(encode_joints(self.next, t, *session_joints(t)), self.receiver.address)
+            self.next += 1
+
+    def close(self):
+        self.sock.close()
+
+
+@pytest.fixture
+def joints():
+    j = Joints()
+    yield j
+    j.close()
+
+
+def loop_of(session, joints, segmenter, memory):
+    scene = session.scene
+    return LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        make_estimator("ukf", scene.catheter),
+        [memory],
+        joints=joints.receiver,
+        segmenter=segmenter,
+        max_time_jump_s=1e9,
+    )
+
+
+def region_at(session, q, delta_L_rad):
+    """The catheter's points at these joints and delta_L in every view, px (mm here)."""
+    scene = session.scene
+    arclengths = np.linspace(0.0, scene.catheter.length_mm, ROI_POINTS)
+    points_b = scene.catheter.backbone(q, delta_L_rad, arclengths)
+    points_w = points_b @ np.asarray(scene.R_w_b).T + np.asarray(scene.o_b_w_mm)
+    return tuple(view.project(points_w) for view in scene.rig.views)
+
+
+def step(tracker, session, joints, k, received_s):
+    joints.send_until(session.frames[k].time_s + 0.002)
+    return tracker.step(images_of(session, k), received_s)
+
+
+# ----------------------------------------------------------------------------- pace
+def test_the_pace_is_the_median_interval_and_a_dropped_frame_does_not_change_it():
+    pace = FramePace(window=5)
+    assert pace.period_s is None and pace.next_time_s is None and pace.due_s() == math.inf
+    pace.add(1.00, 10.0)
+    assert pace.period_s is None and pace.due_s() == math.inf
+    for time_s, received_s in [(1.05, 10.05), (1.10, 10.10), (1.20, 10.21)]:  # 1.15 dropped
+        pace.add(time_s, received_s)
+    assert pace.period_s == pytest.approx(0.05)
+    assert pace.next_time_s == pytest.approx(1.25)
+    assert pace.due_s() == pytest.approx(10.26)
+    assert pace.due_s(speed=2.0) == pytest.approx(10.235)  # a stream played twice as fast
+    assert pace.due_s(speed=None) == math.inf  # no pace: never due
+    pace.add(1.20, 10.3)  # not later: no interval
+    assert pace.period_s == pytest.approx(0.05)
+    pace.reset()
+    assert pace.period_s is None and pace.due_s() == math.inf
+
+
+# ------------------------------------------------------------------ region of interest
+def test_the_region_of_the_next_frame_is_predicted_after_the_estimate_is_sent(session, joints):
+    """Frame k+1 is segmented around the model at frame k's estimate and frame k's joints
+    moved on by their rates over one period; before a period is known, or for a frame far
+    from the time predicted for, the segmenter gets no region (it uses its own)."""
+    segmenter, memory = StandInSegmenter(session.frames), MemorySink()
+    tracker = loop_of(session, joints, segmenter, memory)
+    for k in range(6):
+        step(tracker, session, joints, k, received_s=float(k))
+    assert segmenter.regions[:2] == [None, None]  # no estimate yet, then no period yet
+    for k in range(2, 6):
+        last = memory.results[k - 1]
+        assert last.estimate.valid
+        dt = session.frames[k].time_s - last.frame.time_s
+        expected = region_at(
+            session, last.frame.q + last.frame.q_dot * dt, last.estimate.delta_L_rad
+        )
+        for got, want in zip(segmenter.regions[k], expected, strict=True):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        # ... and that is close to the catheter at the frame's own joints.
+        actual = region_at(session, memory.results[k].frame.q, last.estimate.delta_L_rad)
+        for got, want in zip(segmenter.regions[k], actual, strict=True):
+            assert np.max(np.abs(got - want)) < 0.05  # mm in this orthographic rig
+    step(tracker, session, joints, 8, received_s=8.0)  # two frames dropped: 3 periods later
+    assert segmenter.regions[-1] is None
+    tracker.close()
+
+
+# ---------------------------------------------------------------------------- priming
+def test_priming_drains_the_joints_predicts_the_region_and_pauses_the_sinks(session, joints):
+    """Once per frame, a lead before it is due: the joints received are drained, the region
+    is predicted from the newest of them, and the queued sinks pause until the frame comes
+    or is a lead late. The frame is then segmented around that region."""
+    segmenter, memory = StandInSegmenter(session.frames), MemorySink()
+    tracker = loop_of(session, joints, segmenter, memory)
+    for k in range(3):
+        step(tracker, session, joints, k, received_s=10.0 + 0.05 * k)
+    due_s = 10.15
+    assert tracker.pace.due_s() == pytest.approx(due_s)
+    joints.send_until(session.frames[3].time_s - 0.001)  # the controller streams on
+    received = tracker.joints.counts.received
+    assert not tracker.prime(due_s - 2 * PRIME_LEAD_S)  # too early
+    assert tracker.idle.is_set() and tracker.joints.counts.received == received
+
+    assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
+    assert not tracker.idle.is_set()  # the sinks pause
+    assert tracker.joints.counts.received > received  # drained
+    last = memory.results[-1]
+    newest = tracker.joints.sample(session.frames[3].time_s)
+    q = newest.q + newest.q_dot * newest.age_s
+    primed = region_at(session, q, last.estimate.delta_L_rad)
+    assert not tracker.prime(due_s)  # once per frame
+    assert not tracker.idle.is_set()
+    assert not tracker.prime(due_s + 2 * PRIME_LEAD_S)  # the frame is late...
+    assert tracker.idle.is_set()  # ...the sinks work meanwhile
+
+    tracker.step(images_of(session, 3), due_s + 2 * PRIME_LEAD_S)
+    for got, want in zip(segmenter.regions[3], primed, strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert tracker.idle.is_set()
+    assert not tracker._primed  # the next frame will be primed again
+    tracker.close()
+
+
+def test_without_a_pace_or_with_priming_off_the_loop_never_primes(session, joints):
+    segmenter, memory = StandInSegmenter(session.frames), MemorySink()
+    tracker = loop_of(session, joints, segmenter, memory)
+    step(tracker, session, joints, 0, received_s=1.0)
+    assert not tracker.prime(1.049) and tracker.idle.is_set()  # one frame: no period
+    step(tracker, session, joints, 1, received_s=1.05)
+    tracker.prime_lead_s = None
+    assert not tracker.prime(1.099) and tracker.idle.is_set()
+    tracker.close()
+
+
+class SettingsSink(MemorySink):
+    """Records OpenCV's thread count on the loop's thread."""
+
+    name = "settings"
+
+    def __init__(self):
+        super().__init__()
+        self.cv_threads = []
+
+    def handle(self, *args, **kwargs):
+        self.cv_threads.append(cv2.getNumThreads())
+        super().handle(*args, **kwargs)
+
+
+def test_a_run_takes_opencv_to_one_thread_and_leaves_the_sinks_free(session, joints):
+    """During the run OpenCV uses one thread; afterwards its setting is back, and the sinks
+    are not left paused by a priming for a frame that never came."""
+    segmenter, sink = StandInSegmenter(session.frames), SettingsSink()
+    tracker = loop_of(session, joints, segmenter, sink)
+    before = cv2.getNumThreads()
+    joints.send_until(session.frames[4].time_s + 0.002)
+
+    def source():
+        for k in range(4):
+            yield images_of(session, k)
+        tracker.idle.clear()  # as a priming would leave it
+        yield None
+
+    tracker.run(source(), handle_signals=False)
+    assert sink.cv_threads == [1] * 4
+    assert cv2.getNumThreads() == before
+    assert tracker.idle.is_set()
