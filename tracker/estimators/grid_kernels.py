@@ -47,6 +47,8 @@ import math
 import numba
 import numpy as np
 
+from tracker.estimators.linalg_kernels import _lu_solve
+
 _TWO_PI = 2.0 * math.pi
 
 
@@ -529,47 +531,6 @@ def mix_in_jump(p, means, have_means, mu, jump, clip):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lu_solve(S, B):
-    """X with ``S X = B``, S (m, m), B (m, k), by Gaussian elimination with partial pivoting
-    (LAPACK's dgesv, which the numpy code called; a dozen rows, so no blocking). S and B are
-    overwritten.
-
-    Raises
-    ------
-    numpy.linalg.LinAlgError
-        For an exactly singular S (a zero pivot), as dgesv reports it.
-    """
-    m, k = B.shape
-    for j in range(m):
-        pivot = j
-        for r in range(j + 1, m):
-            if abs(S[r, j]) > abs(S[pivot, j]):
-                pivot = r
-        if S[pivot, j] == 0.0:
-            raise np.linalg.LinAlgError("singular innovation covariance of the deviation")
-        if pivot != j:
-            for c in range(m):
-                S[j, c], S[pivot, c] = S[pivot, c], S[j, c]
-            for c in range(k):
-                B[j, c], B[pivot, c] = B[pivot, c], B[j, c]
-        inverse = 1.0 / S[j, j]
-        for r in range(j + 1, m):
-            factor = S[r, j] * inverse
-            if factor != 0.0:
-                for c in range(j + 1, m):
-                    S[r, c] -= factor * S[j, c]
-                for c in range(k):
-                    B[r, c] -= factor * B[j, c]
-    for j in range(m - 1, -1, -1):
-        for c in range(k):
-            total = B[j, c]
-            for r in range(j + 1, m):
-                total -= S[j, r] * B[r, c]
-            B[j, c] = total / S[j, j]
-    return B
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
 def update_deviation(J, noise, inlier, C, Sigma, cos, sin, mu):
     """Kalman update of every cell's deviation mean and of the shared covariance with the
     inlying groups: one gain, with the Jacobian at the most probable cell's deviation.
@@ -627,7 +588,9 @@ def update_deviation(J, noise, inlier, C, Sigma, cos, sin, mu):
         for s in range(m):
             if block[r] == block[s]:
                 S[r, s] += noise[block[r], r % 3, s % 3]
-    solution = _lu_solve(S, HSigma.copy())  # (m, 2): the gain's transpose
+    solution = HSigma.copy()  # solved in place: (m, 2), the gain's transpose
+    if _lu_solve(S, solution, np.empty((m, m))) == -math.inf:
+        raise np.linalg.LinAlgError("singular innovation covariance of the deviation")
     gain_C = np.zeros((2, 8))
     for r in range(m):
         for j in range(8):

@@ -34,13 +34,11 @@ import math
 import numba
 import numpy as np
 
+from tracker.estimators.linalg_kernels import _JITTER_FLOOR, _cap_row, _lu_solve, _wrap
 from tracker.estimators.ukf_kernels import (
-    _JITTER_FLOOR,
     _fuse_row,
-    _lu_solve,
     _mixture_row,
     _predict_row,
-    _wrap,
     innovation_3d,
     row_factors,
 )
@@ -403,12 +401,7 @@ def _repair(x, P, good_x, good_P, Q, max_variance, rate, initial_rate_variance):
         for c in range(n):
             P[a, c] = v if a == c else 0.0
     P[0, 0] += Q
-    if P[0, 0] > max_variance:
-        f = math.sqrt(max_variance / P[0, 0])
-        for c in range(n):
-            P[0, c] *= f
-        for c in range(n):
-            P[c, 0] *= f
+    _cap_row(P, max_variance)
 
 
 @numba.njit(cache=True, nogil=True)
