@@ -776,10 +776,10 @@ def test_kernels_are_ready_before_the_first_frame():
 import numba, numpy as np
 from models.catheter import default_catheter
 from replay.simulation.render import Renderer, default_render_rig
-from tracker.vision import kernels, pixel_graph
+from tracker.vision import kernels, pixel_graph, shift_kernels
 from tracker.vision.pair import PairSegmenter
 versions = lambda: {name: (len(f.signatures), f.targetoptions["nogil"], type(f._cache).__name__)
-                    for m in (kernels, pixel_graph) for name, f in vars(m).items()
+                    for m in (kernels, pixel_graph, shift_kernels) for name, f in vars(m).items()
                     if isinstance(f, numba.core.registry.CPUDispatcher)}
 catheter, rig, base = default_catheter(), default_render_rig(), np.array([0.0, 0.0, -15.0])
 renderer = Renderer(catheter, rig, np.eye(3), base, seed=1)

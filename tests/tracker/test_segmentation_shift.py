@@ -1,6 +1,7 @@
 """The frame's shift from its background (a camera that vibrates): measured to a few
 hundredths of a pixel, taken out of the points, and frames that did not move left alone."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -14,14 +15,12 @@ from replay.simulation.render import (
     default_render_rig,
     render_view,
 )
+from tracker.vision import shift_kernels, shift_pixels
+from tracker.vision.background import BackgroundModel
 from tracker.vision.pair import PairSegmenter
-from tracker.vision.photometry import (
-    fit_photometry,
-    fit_shift,
-    shift_grid_mask,
-    shift_samples,
-    significant_shift,
-)
+from tracker.vision.photometry import fit_photometry, fit_shift, significant_shift
+from tracker.vision.settings import DEFAULT_SETTINGS
+from tracker.vision.shift_pixels import ShiftSampler, shift_grid_mask, shift_samples
 
 BASE_W = np.array([0.0, 0.0, -15.0])
 Q_BENT = np.array([0.8, 0.7, 0.5])
@@ -100,3 +99,132 @@ def test_a_vibrating_camera_gives_the_points_of_a_still_one():
         rms[vibration] = np.sqrt((e[found] ** 2).sum(axis=-1).mean())
     assert rms[0.5] <= 1.2 * rms[0.0], rms
     assert all(not camera.shift_px.any() for camera in cameras[0.5])
+
+
+def assert_same_samples(a, b):
+    for name in ("index", "levels", "gradient", "cell"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.cells_shape == b.cells_shape
+
+
+def test_pixels_chosen_a_stripe_at_a_time_are_those_of_the_whole_image():
+    """Re-chosen stripe by stripe (with the threshold of the cycle before), the shift's
+    pixels of an image are, from the second cycle on the image, exactly those chosen from
+    the whole image at once; the first cycle keeps the old threshold, hence a few percent
+    more or fewer pixels, but each one's gradient is the new image's."""
+    renderer = Renderer(default_catheter(), default_render_rig(), np.eye(3), BASE_W, seed=3)
+    first, second = renderer.backgrounds
+    sampler = ShiftSampler(first, 8)
+    assert_same_samples(sampler.samples, shift_samples(first))
+    for _ in range(2):
+        for stripe in range(sampler.stripes):
+            sampler.resample(second, stripe)
+        once = sampler.combine()
+        if _ == 0:
+            whole = shift_samples(second)
+            assert abs(once.index.size / whole.index.size - 1.0) < 0.1
+            common, in_once, in_whole = np.intersect1d(once.index, whole.index,
+                                                       return_indices=True)
+            assert common.size > 0.9 * whole.index.size
+            # Centred over different sets of pixels: equal up to each level's mean.
+            np.testing.assert_allclose(once.gradient[:, in_once], whole.gradient[:, in_whole],
+                                       atol=0.5)
+    assert_same_samples(once, shift_samples(second))
+
+
+def test_the_background_models_pixels_follow_its_stripes():
+    """A model that averages in frames of a brighter scene (its stripes one at a time, on
+    its turns): the shift's pixels of each stripe are chosen again with its update and put
+    together once per cycle, on the frame after the cycle's last stripe, with the gray
+    levels the model then has and the gradient of its image (but on the two rows at the
+    end of each stripe, read before the next stripe's update)."""
+    renderer = Renderer(default_catheter(), default_render_rig(), np.eye(3), BASE_W, seed=3)
+    background = renderer.backgrounds[0]
+    model = BackgroundModel(background, DEFAULT_SETTINGS)
+    assert_same_samples(model.shift_samples, shift_samples(background))
+    rng = np.random.default_rng(2)
+    cycle = DEFAULT_SETTINGS.background_stripes * DEFAULT_SETTINGS.background_every
+    changed_at = []
+    for frame in range(2 * cycle):
+        image = np.clip(background + 10.0 + 2.0 * rng.standard_normal(background.shape),
+                        0, 255).astype(np.uint8)
+        photometry = fit_photometry(image, model.image, normalise=False)
+        before = model.shift_samples
+        model.update(image, photometry, [])
+        if model.shift_samples is not before:
+            changed_at.append(frame)
+            samples = model.shift_samples
+            np.testing.assert_array_equal(samples.levels, model.image.ravel()[samples.index])
+    # The frame after the last stripe's turn: the cycle's last.
+    assert changed_at == [cycle - 1, 2 * cycle - 1]
+    samples, whole = model.shift_samples, shift_samples(model.image)
+    assert abs(samples.index.size / whole.index.size - 1.0) < 0.05
+    rows_per = -(-background.shape[0] // DEFAULT_SETTINGS.background_stripes)
+    common, mine, theirs = np.intersect1d(samples.index, whole.index, return_indices=True)
+    inside = (common // background.shape[1]) % rows_per < rows_per - 2
+    assert common.size > 0.95 * whole.index.size
+    # Centred over slightly different sets of pixels: equal but for each level's mean.
+    difference = samples.gradient[:, mine[inside]] - whole.gradient[:, theirs[inside]]
+    levels = samples.levels[mine[inside]]
+    count = np.maximum(np.bincount(levels, minlength=256), 1)
+    for d in difference:
+        per_level = np.bincount(levels, d, minlength=256) / count
+        assert np.abs(d - per_level[levels]).max() < 1e-3
+    assert model.image.mean() > background.mean() + 1.0  # the model did change
+
+
+def test_compiled_choice_and_sums_match_numpy():
+    """The compiled kernels against what they replace: the pixels chosen are those whose
+    gradient (OpenCV's separable filter, edges replicated) exceeds the threshold away from
+    the border, with that gradient; the shift's sums are numpy's over the pixels kept."""
+    renderer = Renderer(default_catheter(), default_render_rig(), np.eye(3), BASE_W, seed=3)
+    background = renderer.backgrounds[1]
+    level = background.astype(np.float32)
+    gx = cv2.sepFilter2D(level, cv2.CV_32F, shift_pixels._DERIVATIVE, shift_pixels._SMOOTH,
+                         borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.sepFilter2D(level, cv2.CV_32F, shift_pixels._SMOOTH, shift_pixels._DERIVATIVE,
+                         borderType=cv2.BORDER_REPLICATE)
+    squared = gx * gx + gy * gy
+    b = shift_pixels._BORDER_PX
+    squared[:b] = squared[-b:] = squared[:, :b] = squared[:, -b:] = 0.0
+    threshold = float(np.quantile(squared, 0.9))
+    sample = np.zeros(-(-background.size // 7), np.float32)
+    index, levels, gradient, cell, counts, sums = shift_kernels.select_pixels(
+        background, 30, 200, shift_pixels._SMOOTH, shift_pixels._DERIVATIVE, b, threshold,
+        4, 160, sample, 7)
+    rows = slice(30, 200)
+    near = np.isclose(squared[rows], threshold, rtol=1e-5)  # rounding may tip these
+    chosen = np.zeros(background.shape, bool).ravel()
+    chosen[index] = True
+    chosen = chosen.reshape(background.shape)[rows]
+    assert np.array_equal(chosen[~near], (squared[rows] > threshold)[~near])
+    np.testing.assert_allclose(gradient, [gx.ravel()[index], gy.ravel()[index]], atol=1e-4)
+    np.testing.assert_array_equal(levels, background.ravel()[index])
+    np.testing.assert_array_equal(cell, (index // 640 // 4) * 160 + (index % 640) // 4)
+    np.testing.assert_array_equal(counts, np.bincount(levels, minlength=256))
+    np.testing.assert_allclose(sums[0], np.bincount(levels, gradient[0], minlength=256),
+                               rtol=1e-9, atol=1e-6)
+    flat = np.arange(30 * 640, 200 * 640)
+    np.testing.assert_allclose(sample[flat[flat % 7 == 0] // 7],
+                               squared.ravel()[flat[flat % 7 == 0]], rtol=1e-4, atol=1e-4)
+
+    rng = np.random.default_rng(1)
+    image = np.clip(background + 3.0 * rng.standard_normal(background.shape), 0, 255)
+    image = image.astype(np.uint8).ravel()
+    excluded = (rng.random(160 * 120) < 0.2).astype(np.uint8)
+    lut = (1.05 * np.arange(256) - 2.0).astype(np.float32)
+    gain, sx, sy, gate = 1.05, 0.3, -0.2, 12.0
+    found = shift_kernels.shift_sums(image, index, levels, gradient, cell, excluded, lut,
+                                     gain, sx, sy, gate)
+    f = image[index].astype(np.float64)
+    g = gain * gradient.astype(np.float64)
+    residual = f - lut[levels]
+    left = residual + g[0] * sx + g[1] * sy
+    keep = ((excluded[cell] == 0) & (f > 0) & (f < 255) & (levels > 0) & (levels < 255)
+            & (np.abs(left) <= gate))
+    assert 0 < keep.sum() < keep.size
+    g, residual, left = g[:, keep], residual[keep], left[keep]
+    expected = (keep.sum(), left @ left, g[0] @ g[0], g[0] @ g[1], g[1] @ g[1],
+                g[0] @ residual, g[1] @ residual)
+    assert found[0] == expected[0]
+    np.testing.assert_allclose(found[1:], expected[1:], rtol=1e-10)

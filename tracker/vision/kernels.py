@@ -17,8 +17,8 @@ compiled loop:
 - :func:`extent_beyond`: the box of the far end;
 - :func:`tone_sums`, :func:`tone_residuals`, :func:`noise_and_shift`: the sums of the
   photometric fit of a frame to its background (:mod:`tracker.vision.photometry`), over a
-  grid of a few thousand pixels; :func:`shift_sums`: those of the frame's shift, over
-  some 30 000 pixels;
+  grid of a few thousand pixels (those of the frame's shift, and the choice of the pixels
+  they run over, are in :mod:`tracker.vision.shift_kernels`);
 - :func:`tip_tangent`: the search of the catheter's 3-D tangent at the tip over a few
   hundred directions (:mod:`tracker.vision.pair`).
 
@@ -42,7 +42,7 @@ import math
 import numba
 import numpy as np
 
-from tracker.vision import pixel_graph
+from tracker.vision import pixel_graph, shift_kernels
 
 
 # ------------------------------------------------------------------------------ contrast
@@ -618,63 +618,6 @@ def noise_and_shift(residual, out, gradient, usable):
     return squares, g00 - o00, g01 - o01, g11 - o11, r0, r1
 
 
-@numba.njit(cache=True, nogil=True)
-def shift_sums(image, index, levels, gradient, cell, excluded, lut, gain, shift_x, shift_y,
-               gate):
-    """The sums of the frame's registration to its background on chosen pixels.
-
-    Parameters
-    ----------
-    image : uint8 array (h w,)
-        The frame, flat (row-major).
-    index : int32 array (n,)
-        The pixels' flat indices...
-    levels : uint8 array (n,)
-        ...the background there...
-    gradient : float32 array (2, n)
-        ...its smoothed gradient (x, y), gray levels per px...
-    cell : int32 array (n,)
-        ...and each pixel's cell in ``excluded`` (uint8, flat): pixels of cells not 0 are
-        left out (the catheter and its surroundings).
-    lut : float32 array (256,)
-        The frame's tone curve.
-    gain, shift_x, shift_y, gate : float
-        The tone curve's slope, the shift so far (px) and the bound of the residual left by
-        it (gray levels): pixels beyond it (the catheter, an occluder) take no part.
-
-    Returns
-    -------
-    The number of pixels taken, the sum of their squared residuals left by the shift so
-    far, the normal matrix of the gradients times the gain (G00, G01, G11) and those
-    gradients times the residual ``image - lut[level]`` (two sums). Pixels black or
-    saturated in either image are left out.
-    """
-    n = 0
-    squares = g00 = g01 = g11 = b0 = b1 = 0.0
-    for k in range(index.size):
-        if excluded[cell[k]]:
-            continue
-        f = image[index[k]]
-        b = levels[k]
-        if f == 0 or f == 255 or b == 0 or b == 255:
-            continue
-        gx = gain * gradient[0, k]
-        gy = gain * gradient[1, k]
-        # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d
-        residual = np.float64(f) - lut[b]
-        left = residual + gx * shift_x + gy * shift_y
-        if abs(left) > gate:
-            continue
-        n += 1
-        squares += left * left
-        g00 += gx * gx
-        g01 += gx * gy
-        g11 += gy * gy
-        b0 += gx * residual
-        b1 += gy * residual
-    return n, squares, g00, g01, g11, b0, b1
-
-
 # ------------------------------------------------------------------------------ pair: tip
 @numba.njit(cache=True, nogil=True)
 def _tangent_costs(linear, extent, cap_px, directions, costs):
@@ -741,9 +684,10 @@ def tip_tangent(linear, extent, cap_px, coarse, cap):
 
 # ---------------------------------------------------------------------------- warm-up
 def warm_up() -> None:
-    """Compile every kernel of the segmentation (here and in
-    :mod:`tracker.vision.pixel_graph`), or load it from the cache, on a tiny input with the
-    argument types the segmentation passes, so that the first frame does not wait for it."""
+    """Compile every kernel of the segmentation (here, in :mod:`tracker.vision.pixel_graph`
+    and in :mod:`tracker.vision.shift_kernels`), or load it from the cache, on a tiny input
+    with the argument types the segmentation passes, so that the first frame does not wait
+    for it."""
     ys, xs, xy, index, dist = pixel_graph.warm_up()
     background = np.full(index.shape, 200, np.uint8)
     image = background - 160
@@ -761,9 +705,6 @@ def warm_up() -> None:
     usable, frame, level, _, _ = tone_sums(image, rows, cols, levels, levels > 0)
     residual, out, _, _, _ = tone_residuals(frame, level, lut.astype(np.float64), np.nan)
     noise_and_shift(residual, out, np.zeros((2, levels.size)), usable)
-    index = np.arange(0, image.size, 3, dtype=np.int32)
-    shift_sums(image.reshape(-1), index, background.reshape(-1)[index],
-               np.zeros((2, index.size), np.float32), index // 4, np.zeros(image.size, np.uint8),
-               lut, 1.0, 0.0, 0.0, 8.0)
+    shift_kernels.warm_up()
     directions = np.eye(3)
     tip_tangent(np.ones((8, 3)), np.ones(2), np.ones(2), directions, directions)

@@ -14,8 +14,9 @@ occluder); saturated pixels take no part. Its residual is the frame's noise esti
 ``f(0)`` its black level (contrasts are fractions of the light above it, so an offset does
 not change them).
 
-:func:`fit_shift` refines the shift on the background's pixels of the strongest gradient,
-to a few hundredths of a pixel (a camera that vibrates is corrected frame by frame,
+:func:`fit_shift` refines the shift on the background's pixels of the strongest gradient
+(:mod:`tracker.vision.shift_pixels`), to a few hundredths of a pixel (a camera that
+vibrates is corrected frame by frame,
 :meth:`tracker.vision.background.CameraSegmenter.in_camera_frame`), and
 :func:`significant_shift` says whether it stands out of its own uncertainty.
 
@@ -35,7 +36,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from tracker.vision import kernels
+from tracker.vision import kernels, shift_kernels
+from tracker.vision.shift_pixels import ShiftSamples
 
 Array = np.ndarray
 
@@ -282,84 +284,7 @@ def fit_photometry(
     return Photometry(lut.astype(np.float32), np.array(shift), sigma, gain, clipped, True, dark)
 
 
-SHIFT_PIXELS = 32768  # the background's pixels of the strongest gradient the shift is fitted on
-SHIFT_CELL_PX = 4  # the cells in which the catheter's surroundings are left out of that fit
-# The gradient of the background for the shift: a derivative of a Gaussian of 1 px (5 taps,
-# as correlation kernels), which keeps the texture's gradient (its scale is many pixels)
-# and takes out the quantisation's: the central differences of an 8-bit image carry
-# enough of it to bias the shift 8 % toward zero (the errors in the variables of a least
-# squares fit).
-_TAPS = np.arange(-2.0, 3.0)
-_SMOOTH = np.exp(-0.5 * _TAPS**2) / np.exp(-0.5 * _TAPS**2).sum()
-_DERIVATIVE = _TAPS * _SMOOTH / float(_TAPS**2 @ _SMOOTH)
-_SMOOTH, _DERIVATIVE = _SMOOTH.astype(np.float32), _DERIVATIVE.astype(np.float32)
 _SIGNIFICANT_CHI2 = 13.8  # chi-square of 2 dof beyond which a shift is applied (p = 0.001)
-_BORDER_PX = 3  # pixels this close to the border are not used (the gradient's 5 taps)
-
-
-@dataclass(frozen=True)
-class ShiftSamples:
-    """The background's pixels that :func:`fit_shift` registers a frame on.
-
-    The shift's information is the sum of the squared gradients: the ``SHIFT_PIXELS``
-    pixels of the strongest gradient carry (for 640 x 480 and a smooth texture) as much as
-    every other pixel of every other row, at less than half the cost.
-
-    Attributes
-    ----------
-    index : array (n,), int32
-        The pixels' flat indices in the image (row-major).
-    levels : array (n,), uint8
-        The background's gray levels there.
-    gradient : array (2, n), float32
-        Its gradient there (x, y), smoothed, gray levels per px.
-    cell : array (n,), int32
-        Each pixel's cell of ``SHIFT_CELL_PX`` square in the grid of cells (row-major)...
-    cells_shape : (int, int)
-        ...of this shape (rows, columns): :func:`shift_grid_mask` leaves out cells.
-    """
-
-    index: Array
-    levels: Array
-    gradient: Array
-    cell: Array
-    cells_shape: tuple[int, int]
-
-
-def shift_samples(background: Array) -> ShiftSamples:
-    """:class:`ShiftSamples` of a background image (uint8 (h, w)); about 1.5 ms for 640 x
-    480, so kept with the background model and made again only when it changes."""
-    level = background.astype(np.float32)
-    gx = cv2.sepFilter2D(level, cv2.CV_32F, _DERIVATIVE, _SMOOTH, borderType=cv2.BORDER_REPLICATE)
-    gy = cv2.sepFilter2D(level, cv2.CV_32F, _SMOOTH, _DERIVATIVE, borderType=cv2.BORDER_REPLICATE)
-    height, width = background.shape
-    strength = cv2.magnitude(gx, gy)
-    b = _BORDER_PX
-    strength[:b] = strength[-b:] = 0.0
-    strength[:, :b] = strength[:, -b:] = 0.0
-    flat = strength.ravel()
-    # The threshold from a sample of the pixels (a partition of them all costs ten times
-    # more); the count kept is then within a few percent of SHIFT_PIXELS.
-    sample = flat[::7].copy()
-    rank = int((1.0 - min(SHIFT_PIXELS / flat.size, 1.0)) * (sample.size - 1))
-    threshold = np.partition(sample, rank)[rank]
-    # 32-bit indices: the fit reads these arrays on every frame, half the memory is less
-    # time.
-    index = np.flatnonzero(flat > max(float(threshold), 0.0)).astype(np.int32)
-    rows, cols = np.divmod(index, np.int32(width))
-    cells_shape = (-(-height // SHIFT_CELL_PX), -(-width // SHIFT_CELL_PX))
-    cell = ((rows // SHIFT_CELL_PX) * cells_shape[1] + cols // SHIFT_CELL_PX).astype(np.int32)
-    levels = background.ravel()[index]
-    gradient = np.stack([gx.ravel()[index], gy.ravel()[index]])
-    # Each gradient less its mean over the pixels of the same gray level: the residual's
-    # part that depends on the gray level alone (the error of the tone curve fitted on
-    # the sparse grid) is then orthogonal to them, and does not leak into the shift
-    # wherever the gradients at one gray level do not cancel (a scene brighter on one
-    # side). The catheter's few pixels left out per frame hardly change the means.
-    count = np.maximum(np.bincount(levels, minlength=256), 1)
-    for row in gradient:
-        row -= (np.bincount(levels, row, minlength=256) / count).astype(np.float32)[levels]
-    return ShiftSamples(index, levels, gradient, cell, cells_shape)
 
 
 def fit_shift(
@@ -385,13 +310,13 @@ def fit_shift(
     ----------
     image : array (h, w), uint8
     samples : ShiftSamples
-        The background's, :func:`shift_samples`.
+        The background's (:mod:`tracker.vision.shift_pixels`).
     photometry : Photometry
         The frame's fit (:func:`fit_photometry`): tone curve, gain, noise, first shift.
     excluded : array, uint8, optional
-        The cells to leave out (not 0), :func:`shift_grid_mask`: the catheter and its
-        surroundings, whose faint blurred edges pass any gate and would pull the shift
-        by some hundredths of a pixel.
+        The cells to leave out (not 0), :func:`tracker.vision.shift_pixels.shift_grid_mask`:
+        the catheter and its surroundings, whose faint blurred edges pass any gate and
+        would pull the shift by some hundredths of a pixel.
 
     Returns
     -------
@@ -405,7 +330,7 @@ def fit_shift(
     first_x, first_y = photometry.shift_px.tolist()
     if excluded is None:
         excluded = np.zeros(samples.cells_shape, np.uint8)
-    n, squares, g00, g01, g11, b0, b1 = kernels.shift_sums(
+    n, squares, g00, g01, g11, b0, b1 = shift_kernels.shift_sums(
         np.ascontiguousarray(image).reshape(-1), samples.index, samples.levels,
         samples.gradient, samples.cell, excluded.reshape(-1), photometry.lut,
         float(photometry.gain), float(first_x), float(first_y),
@@ -420,41 +345,6 @@ def fit_shift(
     # estimate is good for.
     cov = np.array([[g11, -g01], [-g01, g00]]) * (squares / n / det)
     return replace(photometry, shift_px=shift, shift_cov_px2=cov)
-
-
-_FIXED_BITS = 2  # fractional bits of the polyline coordinates given to OpenCV
-
-
-def shift_grid_mask(samples: ShiftSamples, lines: list[tuple[Array, float]]) -> Array:
-    """The cells of :func:`fit_shift` within a distance of polylines.
-
-    Parameters
-    ----------
-    samples : ShiftSamples
-    lines : list of (points (n, 2), half width px)
-        Polylines in the image (px; non-finite points left out) and how far from them the
-        pixels are left out, px.
-
-    Returns
-    -------
-    array ``samples.cells_shape``, uint8
-        1 on the cells to leave out, 0 elsewhere.
-    """
-    mask = np.zeros(samples.cells_shape, np.uint8)
-    one = 1 << _FIXED_BITS
-    for points, half_width_px in lines:
-        points = np.asarray(points, float).reshape(-1, 2)
-        points = points[np.isfinite(points).all(axis=1)]
-        if points.size == 0:
-            continue
-        # Cell (i, j) covers the pixels from (cell j, cell i), its centre half a pixel
-        # before (cell j + cell / 2, ...); one cell more of width for the cells cut.
-        fixed = np.rint(((points + 0.5) / SHIFT_CELL_PX - 0.5) * one).astype(np.int32)
-        thickness = math.ceil(2.0 * half_width_px / SHIFT_CELL_PX) + 1
-        cv2.polylines(mask, [fixed], False, 1, thickness, cv2.LINE_8, _FIXED_BITS)
-        for x, y in (fixed[0].tolist(), fixed[-1].tolist()):
-            cv2.circle(mask, (x, y), (thickness * one) // 2, 1, -1, cv2.LINE_8, _FIXED_BITS)
-    return mask
 
 
 def significant_shift(photometry: Photometry) -> Array:
