@@ -77,7 +77,6 @@ from tracker.estimators.measurement import (
     group_coefficients,
     is_every_trial,
     jump_probability,
-    model_error_covariance,
     offered_velocity,
     outlier_threshold,
     trig_table,
@@ -274,30 +273,49 @@ class FilterBank:
         """
         s, B = self.settings, self.B
         running = self.initialised.copy()
+        time_s = np.ascontiguousarray(time_s, dtype=float)
+        q = np.ascontiguousarray(q, dtype=float)
+        partial = self._no_partial if partial is None else np.ascontiguousarray(partial, bool)
         # The process model of the running trials' hypotheses (ukf_rules.begin_step); the
         # predicted covariances' factors are kept for the update's sigma points.
-        flags, dt, turn, Q, prior, self._factor_ok, self._factor = ukf_rules.begin_step(
-            np.ascontiguousarray(time_s, dtype=float), np.ascontiguousarray(q, dtype=float),
-            self.time_s, self.q,
-            self._no_partial if partial is None else np.ascontiguousarray(partial, dtype=bool),
-            self.x, self.P, self.good_x, self.good_P, self.active, running,
-            s.process_noise_rad2_s, s.rotation_noise_gain_rad, s.joint_error_mm, s.gain_error,
-            s.deviation_length_mm, s.deviation_rate_per_s, s.rate_process_noise_rad2_s3,
-            self.max_variance, s.initial_rate_std_rad_s**2, self._deviation_index,
-            self._rate_index, _FLAGS,
+        process = (
+            time_s, q, self.time_s, self.q, partial, self.x, self.P, self.good_x, self.good_P,
+            self.active, running, s.process_noise_rad2_s, s.rotation_noise_gain_rad,
+            s.joint_error_mm, s.gain_error, s.deviation_length_mm, s.deviation_rate_per_s,
+            s.rate_process_noise_rad2_s3, self.max_variance, s.initial_rate_std_rad_s**2,
+            self._deviation_index, self._rate_index, _FLAGS,
         )  # fmt: skip
+        fused_tip = np.zeros(B, dtype=bool)
+        measured_frame = frame is not None and frame.present.any()
+        terms = None
+        if measured_frame and isinstance(frame, FrameGroups):
+            frame = offered_velocity(frame, s, self.tip_fused)
+            # A 3-D frame: the predict and the frame's terms of the update in one call.
+            c = np.ascontiguousarray
+            flags, dt, turn, Q, prior, self._factor_ok, self._factor, *terms = (
+                ukf_rules.begin_frame_3d(
+                    *process, c(frame.R_bar), c(frame.present), self.reacquire_variance,
+                    c(frame.c), frame.n_positions, c(frame.JK), frame.has_velocity_group,
+                    c(frame.u_norm_mm_s, dtype=float), s.joint_error_white_mm,
+                    s.velocity_relative_error,
+                )
+            )  # fmt: skip
+        else:
+            flags, dt, turn, Q, prior, self._factor_ok, self._factor = ukf_rules.begin_step(
+                *process
+            )
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=np.full(B, np.nan),
             nis_dof=np.zeros(B, dtype=np.int64), rejected=None, radius_mm=np.zeros(B),
             innovation=[None] * B,
         )  # fmt: skip
-        fused_tip = np.zeros(B, dtype=bool)
-        if frame is None or not frame.present.any():
+        if not measured_frame:
             flags |= _F["NO_MEASUREMENT"]
             flags |= np.where(running, _F["HELD"], _F["NOT_INITIALISED"])
         else:
-            frame = offered_velocity(frame, s, self.tip_fused)
-            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip)
+            if terms is None:
+                frame = offered_velocity(frame, s, self.tip_fused)
+            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip, terms)
         self.tip_fused = fused_tip
         out.delta_L_rad, out.std_rad = ukf_rules.report(
             self.x, self.P, self.active, self.log_weight, self.initialised, prior,
@@ -318,26 +336,24 @@ class FilterBank:
         return b, h, slice(None) if every else b
 
     # ------------------------------------------------------------------ fuse
-    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip) -> None:
+    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip, terms) -> None:
+        """Update with a measured frame. ``terms``: what ``begin_frame_3d`` computed of a 3-D
+        frame (usable, measured, all_wide, updating, radius, M); None for single views."""
         s = self.settings
         B = self.B
         present = frame.present
-        three_d = isinstance(frame, FrameGroups)
-        noise = frame.noise(slice(None))
-        usable, measured, all_wide, updating = ukf_rules.prepare_fuse(
-            np.ascontiguousarray(noise), present, running, self.active, self.P,
-            self.reacquire_variance, flags, _FLAGS,
-        )  # fmt: skip
-        if not usable:
-            check_measurement_covariance(noise, present)  # raises, naming the problem
-        scale = self.noise_scale * self.mismatch_scale
-        out.radius_mm = frame.radius_mm()
-        M = None
+        three_d = terms is not None
         if three_d:
-            rate_var = np.zeros(B) if self.rate is not None else Q
-            M = model_error_covariance(
-                frame, s.joint_error_white_mm, s.velocity_relative_error, rate_var, dt
-            )
+            usable, measured, all_wide, updating, out.radius_mm, M = terms
+        else:
+            usable, measured, all_wide, updating = ukf_rules.prepare_fuse(
+                np.ascontiguousarray(frame.noise(slice(None))), present, running, self.active,
+                self.P, self.reacquire_variance, flags, _FLAGS,
+            )  # fmt: skip
+            out.radius_mm, M = frame.radius_mm(), None
+        if not usable:
+            check_measurement_covariance(frame.noise(slice(None)), present)  # raises, naming it
+        scale = self.noise_scale * self.mismatch_scale
         marked = self._marked(updating)
         update = self._update(frame, marked, M, scale) if marked[0].size else _NO_UPDATE
         G, d = present.shape[1], frame.dim

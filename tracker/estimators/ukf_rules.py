@@ -5,27 +5,23 @@ studies (docs/design.md, "The UKF" and "Joint consistency and doubtful groups").
 
 A step is a few calls, each one loop over the trials and their hypotheses:
 
-- :func:`begin_step`: the frame interval, the base turn and the joint travel, the process
-  noise and the deviation's prior, and the predict of every active hypothesis of every
-  running trial (:func:`~tracker.estimators.ukf_kernels.predict_rows`' arithmetic);
-- :func:`prepare_fuse`: the usability of the frame's noise, which trials measured anything,
-  the hypotheses too wide to update (dropped beside a narrow one; a trial left with only
-  wide ones restarts from the frame), and which hypotheses are updated;
-- :func:`gate_and_fuse`: the update's rules per hypothesis given its innovation statistics
-  (:mod:`tracker.estimators.ukf_kernels`): gate, joint consistency, doubtful mixture,
-  likelihood, status;
-- :func:`apply_update`: each trial's report from its leading hypothesis' update, the
-  rejected groups, the run of rejected frames, the restart candidates and the adaptive
-  noise scale;
-- :func:`normalise_single` and :func:`report`: the hypotheses' weights where a trial has only
-  one, the model-mismatch flag and the moment-matched estimate.
+- :func:`begin_step` (with a 3-D frame :func:`begin_frame_3d`): the frame interval, the base
+  turn, the process noise, the deviation's prior, the predict of every active hypothesis of
+  every running trial, a repair where it is not usable; :func:`prepare_fuse`: which trials
+  measured anything and which hypotheses are updated (a wide one beside a narrow one is
+  dropped; a trial left with only wide ones restarts from the frame);
+- :func:`update_3d` (single views: :func:`gate_and_fuse` and :func:`commit_update`): the
+  update's rules per hypothesis given its innovation statistics: gate, joint consistency,
+  doubtful mixture, likelihood, status, the write-back;
+- :func:`apply_update`: each trial's report from its leading hypothesis' update, the run of
+  rejected frames, the restart candidates and the adaptive noise scale;
+- :func:`normalise_single` and :func:`report`: the weights where a trial has one
+  hypothesis, the model-mismatch flag and the moment-matched estimate.
 
-What happens rarely stays in Python (:mod:`tracker.estimators.ukf_core`): a covariance
-repair, the closed-form start and restart of a filter, the weights and merging of several
-hypotheses. Flag values are passed in as integers (``_flag_values``), in the order of
+The closed-form start and restart, and the weights and merging of several hypotheses, stay
+in Python (:mod:`tracker.estimators.ukf_core`). Flags are passed as integers in the order of
 ``FLAG_ORDER``.
 """
-
 from __future__ import annotations
 
 import functools
@@ -35,6 +31,7 @@ import numba
 import numpy as np
 
 from tracker.estimators.linalg_kernels import _JITTER_FLOOR, _cap_row, _lu_solve, _wrap
+from tracker.estimators.measurement_kernels import horizontal_radius, model_error
 from tracker.estimators.ukf_kernels import (
     _fuse_row,
     _mixture_row,
@@ -418,15 +415,15 @@ def prepare_fuse(noise, present, running, active, P, reacquire_variance, flags, 
     """
     B, G, d = noise.shape[0], noise.shape[1], noise.shape[2]
     H = active.shape[1]
+    measured = np.zeros(B, dtype=np.bool_)
+    all_wide = np.zeros(B, dtype=np.bool_)
+    updating = np.zeros((B, H), dtype=np.bool_)
     for t in range(B):
         for g in range(G):
             if present[t, g]:
                 for a in range(d):
                     if not noise[t, g, a, a] > 0.0:
-                        return False, None, None, None
-    measured = np.zeros(B, dtype=np.bool_)
-    all_wide = np.zeros(B, dtype=np.bool_)
-    updating = np.zeros((B, H), dtype=np.bool_)
+                        return False, measured, all_wide, updating
     for t in range(B):
         for g in range(G):
             measured[t] = measured[t] or present[t, g]
@@ -451,6 +448,35 @@ def prepare_fuse(noise, present, running, active, P, reacquire_variance, flags, 
             some = some or active[t, h]
         all_wide[t] = some and not narrow and measured[t]
     return True, measured, all_wide, updating
+
+
+@numba.njit(cache=True, nogil=True)
+def begin_frame_3d(
+    time_s, q, last_time_s, last_q, partial, x, P, good_x, good_P, active, running,
+    process_noise, rotation_gain, joint_error, gain_error, deviation_length, deviation_rate,
+    rate_noise, max_variance, initial_rate_variance, deviation, rate, flag, R_bar, present,
+    reacquire_variance, c, n_positions, JK, has_velocity, u_norm, white_mm, relative_error,
+):  # fmt: skip
+    """:func:`begin_step` for a frame of 3-D groups, then what the update needs of it:
+    :func:`prepare_fuse`, the frame's radius and its model-error covariance
+    (:mod:`tracker.estimators.measurement_kernels`; the torsion change over the interval
+    enters the velocity's model error unless the state carries the rate).
+
+    Returns ``begin_step``'s ``(flags, dt, turn, Q, prior, ok, L)``, then ``prepare_fuse``'s
+    ``(usable, measured, all_wide, updating)``, the radius (B,), mm, and M (B, G, 3, 3).
+    """
+    flags, dt, turn, Q, prior, ok, L = begin_step(
+        time_s, q, last_time_s, last_q, partial, x, P, good_x, good_P, active, running,
+        process_noise, rotation_gain, joint_error, gain_error, deviation_length,
+        deviation_rate, rate_noise, max_variance, initial_rate_variance, deviation, rate, flag,
+    )  # fmt: skip
+    usable, measured, all_wide, updating = prepare_fuse(
+        R_bar, present, running, active, P, reacquire_variance, flags, flag
+    )
+    radius = horizontal_radius(c, present, n_positions)
+    process_var = Q if rate < 0 else np.zeros_like(Q)
+    M = model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, process_var, dt)
+    return (flags, dt, turn, Q, prior, ok, L, usable, measured, all_wide, updating, radius, M)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -703,6 +729,16 @@ def warm_up() -> None:
             np.zeros(B, dtype=bool), x, P, x.copy(), P.copy(), active, running, 1.0, 1.0, 1.0,
             1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1 if n > 2 else -1, 1 if n == 4 else -1, flag,
         )  # fmt: skip
+        for has_velocity in (True, False):
+            c = np.ones((B, G, 3))
+            eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
+            begin_frame_3d(
+                np.zeros(B), np.zeros((B, 3)), np.full(B, np.nan), np.zeros((B, 3)),
+                np.zeros(B, dtype=bool), x.copy(), P.copy(), x.copy(), P.copy(), active.copy(),
+                running, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1 if n > 2 else -1,
+                1 if n == 4 else -1, flag, eye, np.ones((B, G), dtype=bool), 1.0, c, G,
+                np.zeros((B, G, 3, 5)), has_velocity, np.ones(B), 0.1, 0.1,
+            )  # fmt: skip
         for d in (2, 3):
             noise = np.broadcast_to(np.eye(d), (B, G, d, d)).copy()
             present = np.ones((B, G), dtype=bool)
@@ -749,6 +785,7 @@ def warm_up() -> None:
 __all__ = [
     "FLAG_ORDER",
     "apply_update",
+    "begin_frame_3d",
     "begin_step",
     "commit_update",
     "gate_and_fuse",
