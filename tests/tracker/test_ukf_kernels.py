@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tracker.estimators import measurement_kernels as MK
+from tracker.estimators import ukf_gate as Gate
 from tracker.estimators import ukf_kernels as K
 from tracker.estimators import ukf_rules as R
 
@@ -263,7 +264,7 @@ def _gate(S, rho, Pxz, d2, x, P, d, p=0.01, k=5.0, threshold=None, doubt=math.in
     G = d2.shape[1]
     threshold = 2.0 * (math.log((1 - p) / p) + d * math.log(k)) / (1 - k**-2) if threshold is None else threshold
     gates = np.full(G + 1, np.inf) if gates is None else gates
-    return R.gate_and_fuse(
+    return Gate.gate_and_fuse(
         S, rho, Pxz, d2, np.ones(d2.shape, dtype=bool), np.ones(d2.shape[0], dtype=bool), x,
         P, d, p, k, threshold, doubt, gates, 1e-6, _FLAGS,
     )  # fmt: skip

@@ -36,7 +36,8 @@ The reported estimate is the moment-matched Gaussian of the hypotheses (circular
 filter torn between two hypotheses says so with a large std; hypotheses that come to agree
 are merged.
 
-The per-frame rules are compiled (numba) in :mod:`tracker.estimators.ukf_rules`, on the
+The per-frame rules are compiled (numba) in :mod:`tracker.estimators.ukf_rules` and
+:mod:`tracker.estimators.ukf_gate` (the update's rules per hypothesis), on the
 arithmetic of :mod:`tracker.estimators.ukf_kernels` and
 :mod:`tracker.estimators.measurement_kernels`: one loop over trials and hypotheses per stage,
 for a bank of one as for thousands. This class keeps the order of a step and what happens
@@ -59,7 +60,7 @@ from functools import lru_cache
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from tracker.estimators import measurement_kernels, ukf_kernels, ukf_rules
+from tracker.estimators import measurement_kernels, ukf_gate, ukf_kernels, ukf_rules
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
@@ -172,6 +173,7 @@ class FilterBank:
         self._deviation_index = -1 if self.deviation is None else self.deviation
         measurement_kernels.warm_up()
         ukf_kernels.warm_up()
+        ukf_gate.warm_up()
         ukf_rules.warm_up()
         self.reset(n_trials)
 
@@ -286,6 +288,7 @@ class FilterBank:
             self._deviation_index, self._rate_index, _FLAGS,
         )  # fmt: skip
         fused_tip = np.zeros(B, dtype=bool)
+        reported = None
         measured_frame = frame is not None and frame.present.any()
         terms = None
         if measured_frame and isinstance(frame, FrameGroups):
@@ -315,12 +318,15 @@ class FilterBank:
         else:
             if terms is None:
                 frame = offered_velocity(frame, s, self.tip_fused)
-            self._fuse(frame, running, Q, dt, turn, flags, out, fused_tip, terms)
+            reported = self._fuse(frame, running, Q, dt, turn, prior, flags, out, fused_tip,
+                                  terms)  # fmt: skip
         self.tip_fused = fused_tip
-        out.delta_L_rad, out.std_rad = ukf_rules.report(
-            self.x, self.P, self.active, self.log_weight, self.initialised, prior,
-            self._deviation_index, flags, _FLAGS,
-        )  # fmt: skip
+        if reported is None:
+            reported = ukf_rules.report(
+                self.x, self.P, self.active, self.log_weight, self.initialised, prior,
+                self._deviation_index, flags, _FLAGS,
+            )  # fmt: skip
+        out.delta_L_rad, out.std_rad = reported
         out.rejected = self.rejected.copy()
         return out
 
@@ -336,9 +342,12 @@ class FilterBank:
         return b, h, slice(None) if every else b
 
     # ------------------------------------------------------------------ fuse
-    def _fuse(self, frame, running, Q, dt, turn, flags, out, fused_tip, terms) -> None:
+    def _fuse(self, frame, running, Q, dt, turn, prior, flags, out, fused_tip, terms):
         """Update with a measured frame. ``terms``: what ``begin_frame_3d`` computed of a 3-D
-        frame (usable, measured, all_wide, updating, radius, M); None for single views."""
+        frame (usable, measured, all_wide, updating, radius, M); None for single views.
+
+        Returns the estimate (mean, std) where it was reported with the update, else None.
+        """
         s = self.settings
         B = self.B
         present = frame.present
@@ -359,21 +368,28 @@ class FilterBank:
         G, d = present.shape[1], frame.dim
         low, high = s.noise_scale_bounds
         # The report follows each trial's leading hypothesis.
-        spawn, first, row, closed_form = ukf_rules.apply_update(
-            update.b, update.h, update.status, update.nis, update.dof, update.rejected,
-            update.fused_tip, self.active, self.log_weight, running, all_wide, measured,
-            three_d, flags, out.nis, out.nis_dof, self.rejected, self.bad_run, fused_tip,
-            self.noise_scale, s.estimate_noise, _gate_table(s.gate_probability, G * d),
-            s.noise_forgetting, low, high, _FLAGS,
+        spawn, first, row, closed_form, first_only, single, finished, mean, std = (
+            ukf_rules.finish_update(
+                update.b, update.h, update.status, update.nis, update.dof, update.rejected,
+                update.fused_tip, self.active, self.log_weight, running, all_wide, measured,
+                three_d, flags, out.nis, out.nis_dof, self.rejected, self.bad_run, fused_tip,
+                self.noise_scale, s.estimate_noise, _gate_table(s.gate_probability, G * d),
+                s.noise_forgetting, low, high, _FLAGS, self.x, self.P, self.initialised,
+                prior, self._deviation_index,
+            )
         )  # fmt: skip
         if B == 1 and row[0] >= 0:
             out.innovation[0] = update.innovation[row[0]]
+        if finished:
+            self._first_only, self._single = first_only, single
+            return mean, std
         if closed_form:
             # Data the leading hypothesis does not explain, in part or as a whole: weigh a
             # hypothesis started from the frame alone against it.
             jump = jump_probability(s.jump_rate_per_s, s.jump_per_rad, dt, turn)
             self._closed_form(frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip)
         self._normalise()
+        return None
 
     def _closed_form(self, frame, M, scale, first, all_wide, spawn, jump, flags, fused_tip):
         """Start, restart or add a hypothesis from the global fit of the frame alone."""
@@ -540,7 +556,7 @@ class FilterBank:
         rules = (p, k, threshold, doubt_threshold(d, p, k), gates, self.min_information, _FLAGS)
         if isinstance(frame, FrameGroups):
             c = np.ascontiguousarray
-            status, nis, dof, rejected, inlier, shown, rho = ukf_rules.update_3d(
+            status, nis, dof, rejected, inlier, shown, rho = ukf_gate.update_3d(
                 b, h, self.x, self.P, self._factor, self._factor_ok, self.good_x, self.good_P,
                 self.log_weight, self.mismatch_scale, MISMATCH_DECAY, self.spread, c(frame.c),
                 c(frame.JK), c(frame.y), c(frame.q), c(frame.R_bar), scale, M,
@@ -558,11 +574,11 @@ class FilterBank:
                 self._rate_index, self._deviation_index,
             )  # fmt: skip
             x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
-                ukf_rules.gate_and_fuse(
+                ukf_gate.gate_and_fuse(
                     S, rho, Pxz, d2, frame.present[rows], ok_sigma, x, P, d, *rules
                 )
             )
-            ukf_rules.commit_update(
+            ukf_gate.commit_update(
                 b, h, done, x_post, P_post, log_lik, self.x, self.P, self.good_x, self.good_P,
                 self.log_weight, self.mismatch_scale, MISMATCH_DECAY,
             )  # fmt: skip

@@ -10,9 +10,7 @@ A step is a few calls, each one loop over the trials and their hypotheses:
   every running trial, a repair where it is not usable; :func:`prepare_fuse`: which trials
   measured anything and which hypotheses are updated (a wide one beside a narrow one is
   dropped; a trial left with only wide ones restarts from the frame);
-- :func:`update_3d` (single views: :func:`gate_and_fuse` and :func:`commit_update`): the
-  update's rules per hypothesis given its innovation statistics: gate, joint consistency,
-  doubtful mixture, likelihood, status, the write-back;
+- (the update's rules per hypothesis: :mod:`tracker.estimators.ukf_gate`;)
 - :func:`apply_update`: each trial's report from its leading hypothesis' update, the run of
   rejected frames, the restart candidates and the adaptive noise scale;
 - :func:`normalise_single` and :func:`report`: the weights where a trial has one
@@ -30,253 +28,21 @@ import math
 import numba
 import numpy as np
 
-from tracker.estimators.linalg_kernels import _JITTER_FLOOR, _cap_row, _lu_solve, _wrap
+from tracker.estimators.linalg_kernels import _JITTER_FLOOR, _cap_row, _wrap
 from tracker.estimators.measurement_kernels import horizontal_radius, model_error
-from tracker.estimators.ukf_kernels import (
-    _fuse_row,
-    _mixture_row,
-    _predict_row,
-    innovation_3d,
-    row_factors,
+from tracker.estimators.ukf_gate import (
+    _HELD,
+    _MISMATCH,
+    _NO_MEASUREMENT,
+    _NOT_INITIALISED,
+    _OUTLIER,
+    _PARTIAL,
+    _REPAIRED,
+    _UNINFORMATIVE,
+    FLAG_ORDER,
+    gate_and_fuse,
 )
-
-# The flags the kernels set, in the order of the ``flags`` array they are given.
-FLAG_ORDER = (
-    "PARTIAL", "NO_MEASUREMENT", "HELD", "NOT_INITIALISED", "OUTLIER_REJECTED",
-    "COVARIANCE_REPAIRED", "UNINFORMATIVE", "MODEL_MISMATCH",
-)  # fmt: skip
-_PARTIAL, _NO_MEASUREMENT, _HELD, _NOT_INITIALISED, _OUTLIER, _REPAIRED, _UNINFORMATIVE = range(7)
-_MISMATCH = 7
-
-
-@numba.njit(cache=True, nogil=True)
-def _exclude_inconsistent(S, rho, inlier, d, threshold):
-    """Inlying groups whose residual *given the other inlying groups* exceeds the group
-    threshold, left out one at a time (the worst first) while two remain (in place).
-
-    The residual of group g given the others is Gaussian with covariance
-    ``((S^-1)_gg)^-1`` and mean zero under the model; its squared Mahalanobis length is
-    ``e_g^T ((S^-1)_gg)^-1 e_g`` with ``e = S^-1 rho``: how much the joint NIS drops when g
-    is left out."""
-    m = rho.shape[0]
-    G = m // d
-    Sm = np.empty((m, m))
-    inverse = np.empty((m, m))
-    work = np.empty((m, m))
-    block = np.empty((d, d))
-    rhs = np.empty((d, 1))
-    small = np.empty((d, d))
-    while True:
-        for a in range(m):
-            for b in range(m):
-                both = inlier[a // d] and inlier[b // d]
-                Sm[a, b] = S[a, b] if both else (1.0 if a == b else 0.0)
-                inverse[a, b] = 1.0 if a == b else 0.0
-        if _lu_solve(Sm, inverse, work) == -math.inf:
-            return
-        worst, largest = -1, -math.inf
-        for g in range(G):
-            if not inlier[g]:
-                continue
-            for a in range(d):
-                t = 0.0
-                for j in range(m):
-                    if inlier[j // d]:
-                        t += inverse[g * d + a, j] * rho[j]
-                rhs[a, 0] = t
-                for b in range(d):
-                    block[a, b] = inverse[g * d + a, g * d + b]
-            e = rhs.copy()
-            if _lu_solve(block, rhs, small) == -math.inf:
-                continue
-            given = 0.0
-            for a in range(d):
-                given += e[a, 0] * rhs[a, 0]
-            if given > largest:
-                worst, largest = g, given
-        if worst < 0 or not largest > threshold:
-            return
-        inlier[worst] = False
-        count = 0
-        for g in range(G):
-            count += inlier[g]
-        if count < 2:
-            return
-
-
-@numba.njit(cache=True, nogil=True)
-def gate_and_fuse(
-    S, rho, Pxz, d2, present, ok_sigma, x, P, d, outlier_probability, outlier_scale,
-    threshold, doubt, gates, min_information, flag,
-):  # fmt: skip
-    """The update's rules for r hypotheses, given their innovation statistics (docs/design.md,
-    "Joint consistency and doubtful groups").
-
-    Per hypothesis: a group is an inlier when present and its squared residual ``d2`` is
-    within ``threshold`` (where its posterior probability of being a gross error is one
-    half); the inliers are fused in one solve. When two or more inliers pass alone but their
-    joint NIS exceeds ``gates[count]`` (its chi-square gate), the group least consistent
-    with the others is left out, one at a time (:func:`_exclude_inconsistent`). Inliers
-    beyond ``doubt`` (a gross error with probability above ``DOUBT_PROBABILITY``) are doubtful:
-    the posterior is the moment-matched mixture of the update with them (weight: the product
-    of their inlier probabilities) and the update without them. The frame's log-likelihood
-    under the hypothesis counts the inliers as Gaussian and the rejected groups under the
-    heavy tail.
-
-    Parameters
-    ----------
-    S, rho, Pxz, d2 : arrays
-        From :func:`innovation_stats` or :func:`innovation_3d`.
-    present : bool array (r, G)
-    ok_sigma : bool array (r,)
-        Whether the sigma points' factorisation succeeded.
-    x, P : arrays (r, n), (r, n, n)
-        The priors.
-    d : int
-        Dimension of a group.
-    outlier_probability, outlier_scale : float
-        The heavy-tailed component: its probability and its widening.
-    threshold, doubt : float
-        Squared residuals of the gate and of doubt (inf: none).
-    gates : array (G + 1,)
-        The joint NIS gate of k inlying groups (inf: no consistency check).
-    min_information : float
-        Least information about delta_L (1/rad^2) for an update to count.
-    flag : int array
-        Flag values in the order of ``FLAG_ORDER``.
-
-    Returns
-    -------
-    x_post, P_post : arrays (r, n), (r, n, n)
-    nis : array (r,)
-        The NIS of the inliers (NaN where the update is not shown: unusable or
-        uninformative).
-    dof : int array (r,)
-        Its degrees of freedom (0 where not shown).
-    log_lik : array (r,)
-        The frame's log-likelihood under each hypothesis (-1e300 where not finite).
-    inlier : bool array (r, G)
-    status : int array (r,)
-        Flags of the update.
-    rejected : int array (r,)
-        Groups rejected as gross errors.
-    done : bool array (r,)
-        Whether the posterior replaces the prior.
-    innovation_shown : bool array (r,)
-        Whether the update is shown (usable and informative).
-    """
-    r, m = rho.shape
-    n = x.shape[1]
-    G = m // d
-    x_post = np.empty((r, n))
-    P_post = np.empty((r, n, n))
-    nis_out = np.empty(r)
-    dof = np.zeros(r, dtype=np.int64)
-    log_lik = np.empty(r)
-    inlier = np.zeros((r, G), dtype=np.bool_)
-    status = np.zeros(r, dtype=np.int64)
-    rejected = np.zeros(r, dtype=np.int64)
-    done = np.zeros(r, dtype=np.bool_)
-    shown = np.zeros(r, dtype=np.bool_)
-    products = np.empty((n + 1, n + 1))
-    alt_products = np.empty((n + 1, n + 1))
-    x_alt = np.empty(n)
-    P_alt = np.empty((n, n))
-    diff = np.empty(n)
-    Sm = np.empty((m, m))
-    A = np.empty((n + 1, m))
-    solved = np.empty((n + 1, m))
-    keep = np.empty(m, dtype=np.bool_)
-    fewer = np.empty(G, dtype=np.bool_)
-    block = np.empty((d, d))
-    work = np.empty((d, d))
-    eye = np.empty((d, 1))
-    log_2pi = math.log(2.0 * math.pi)
-    per_group = math.log1p(-outlier_probability) - 0.5 * d * log_2pi
-    flag_outlier, flag_held = flag[_OUTLIER], flag[_HELD]
-    flag_repaired, flag_uninformative = flag[_REPAIRED], flag[_UNINFORMATIVE]
-    for i in range(r):
-        row_in = inlier[i]
-        for g in range(G):
-            row_in[g] = present[i, g] and d2[i, g] <= threshold
-        logdet, ok_S = _fuse_row(
-            S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i], P_post[i],
-            Sm, A, solved, keep,
-        )  # fmt: skip
-        count = 0
-        for g in range(G):
-            count += row_in[g]
-        if count >= 2 and products[n, n] > gates[count]:
-            _exclude_inconsistent(S[i], rho[i], row_in, d, threshold)
-            logdet, ok_S = _fuse_row(
-                S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i],
-                P_post[i], Sm, A, solved, keep,
-            )  # fmt: skip
-        count = 0
-        for g in range(G):
-            count += row_in[g]
-        nis = products[n, n]
-        # A doubtful inlier: the mixture of the update with it and the update without it.
-        w = 1.0
-        any_doubt = False
-        for g in range(G):
-            fewer[g] = row_in[g]
-            if row_in[g] and d2[i, g] > doubt:
-                any_doubt = True
-                fewer[g] = False
-                log_ratio = (
-                    math.log(outlier_probability / (1.0 - outlier_probability))
-                    - d * math.log(outlier_scale)
-                    + 0.5 * (1.0 - outlier_scale**-2) * min(d2[i, g], 1e4)
-                )
-                w *= 1.0 / (1.0 + math.exp(min(log_ratio, 700.0)))
-        if any_doubt:
-            _fuse_row(
-                S[i], rho[i], Pxz[i], fewer, d, x[i], P[i], alt_products, x_alt, P_alt, Sm,
-                A, solved, keep,
-            )  # fmt: skip
-            _mixture_row(w, x_post[i], P_post[i], x_alt, P_alt, x_post[i], P_post[i], diff)
-        # The frame's likelihood under the hypothesis (weighs it against a restarted one).
-        lik = count * per_group - 0.5 * (nis + logdet)
-        outliers = 0
-        for g in range(G):
-            if present[i, g] and not row_in[g]:
-                outliers += 1
-                if outlier_probability > 0.0:
-                    for a in range(d):
-                        eye[a, 0] = 0.0
-                        for b in range(d):
-                            block[a, b] = S[i, g * d + a, g * d + b]
-                    logdet_g = _lu_solve(block, eye, work)
-                    lik += (
-                        math.log(outlier_probability) - d * math.log(outlier_scale)
-                        - 0.5 * d2[i, g] / outlier_scale**2 - 0.5 * (logdet_g + d * log_2pi)
-                    )  # fmt: skip
-        log_lik[i] = lik if math.isfinite(lik) else -1e300
-        rejected[i] = outliers
-        usable = ok_sigma[i] and ok_S and count > 0
-        prior_var, post_var = P[i, 0, 0], P_post[i, 0, 0]
-        post_ok = post_var > 0 and math.isfinite(x_post[i, 0])
-        # The frame's information about delta_L (how much it shrank the variance) must
-        # exceed the minimum: 1/post - 1/prior > min, i.e. prior - post > min prior post.
-        informative = prior_var - post_var > min_information * prior_var * post_var
-        settled = usable and post_ok
-        done[i] = settled and informative
-        uninformative = settled and not informative
-        st = flag_outlier if outliers else 0
-        if not (done[i] or uninformative):
-            st |= flag_held
-        if count > 0 and not (ok_S and post_ok):
-            st |= flag_repaired
-        if uninformative:
-            st |= flag_uninformative | flag_held
-        status[i] = st
-        shown[i] = usable and not uninformative
-        nis_out[i] = nis if shown[i] else math.nan
-        dof[i] = d * count if shown[i] else 0
-    return x_post, P_post, nis_out, dof, log_lik, inlier, status, rejected, done, shown
-
-
+from tracker.estimators.ukf_kernels import _predict_row
 
 
 # ------------------------------------------------------------------------------ a step
@@ -553,84 +319,6 @@ def apply_update(
 
 
 @numba.njit(cache=True, nogil=True)
-def commit_update(b, h, done, x_post, P_post, log_lik, x, P, good_x, good_P, log_weight,
-                  mismatch_scale, mismatch_decay):  # fmt: skip
-    """Write the updated hypotheses (rows ``b``, ``h``) back, in place: the posterior where
-    ``done`` (also as the last good state), the frame's log-likelihood added to every row's
-    weight, and the model-mismatch inflation of each trial with a posterior brought back
-    towards 1 by ``mismatch_decay`` (once per trial)."""
-    B = x.shape[0]
-    decayed = np.zeros(B, dtype=np.bool_)
-    n = x.shape[2]
-    for i in range(b.shape[0]):
-        t, k = b[i], h[i]
-        if done[i]:
-            for a in range(n):
-                x[t, k, a] = good_x[t, k, a] = x_post[i, a]
-                for c in range(n):
-                    P[t, k, a, c] = good_P[t, k, a, c] = P_post[i, a, c]
-            if not decayed[t]:
-                mismatch_scale[t] = 1.0 + mismatch_decay * (mismatch_scale[t] - 1.0)
-                decayed[t] = True
-        log_weight[t, k] += log_lik[i]
-
-
-@numba.njit(cache=True, nogil=True)
-def update_3d(
-    b, h, x_all, P_all, L_all, factor_ok, good_x, good_P, log_weight, mismatch_scale,
-    mismatch_decay, spread, c, JK, y, q, R_bar, scale, M, present, has_velocity, Wm, Wc,
-    deviation, rate, outlier_probability, outlier_scale, threshold, doubt, gates,
-    min_information, flag,
-):  # fmt: skip
-    """The update of hypotheses (rows ``b``, ``h``) with a 3-D frame, written back in place:
-    their sigma points (the predict's factors ``L_all`` where ``factor_ok``, else a fresh
-    factorisation), the innovation statistics
-    (:func:`~tracker.estimators.ukf_kernels.innovation_3d`), the rules of
-    :func:`gate_and_fuse` and the write-back of :func:`commit_update`.
-
-    Returns ``(status, nis, dof, rejected, inlier, shown, rho)`` per row as
-    :func:`gate_and_fuse` gives them (``rho``: the residuals, (r, 3G)).
-    """
-    r = b.shape[0]
-    n = x_all.shape[2]
-    G = c.shape[1]
-    P, L, ok_sigma = row_factors(b, h, P_all, L_all, factor_ok)
-    x = np.empty((r, n))
-    rows_c = np.empty((r, G, 3))
-    rows_JK = np.empty((r, G, 3, 5))
-    rows_y = np.empty((r, G, 3))
-    rows_q = np.empty(r)
-    rows_R = np.empty((r, G, 3, 3))
-    rows_M = np.empty((r, G, 3, 3))
-    rows_scale = np.empty(r)
-    rows_present = np.empty((r, G), dtype=np.bool_)
-    for i in range(r):
-        t = b[i]
-        x[i] = x_all[t, h[i]]
-        rows_c[i] = c[t]
-        rows_JK[i] = JK[t]
-        rows_y[i] = y[t]
-        rows_q[i] = q[t, 0]
-        rows_R[i] = R_bar[t]
-        rows_M[i] = M[t]
-        rows_scale[i] = scale[t]
-        rows_present[i] = present[t]
-    S, rho, Pxz, d2, _ = innovation_3d(
-        x, L, spread, rows_c, rows_JK, rows_y, rows_q, rows_R, rows_scale, rows_M, Wm, Wc,
-        deviation, rate, has_velocity,
-    )  # fmt: skip
-    x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = gate_and_fuse(
-        S, rho, Pxz, d2, rows_present, ok_sigma, x, P, 3, outlier_probability,
-        outlier_scale, threshold, doubt, gates, min_information, flag,
-    )  # fmt: skip
-    commit_update(
-        b, h, done, x_post, P_post, log_lik, x_all, P_all, good_x, good_P, log_weight,
-        mismatch_scale, mismatch_decay,
-    )  # fmt: skip
-    return status, nis, dof, rejected, inlier, shown, rho
-
-
-@numba.njit(cache=True, nogil=True)
 def normalise_single(active, log_weight):
     """Whether every trial has its hypotheses in slot 0 only (``first_only``) and at most
     one (``single``); with ``single`` the weights become 0 (log) where active, -inf
@@ -708,6 +396,37 @@ def report(x, P, active, log_weight, initialised, prior, deviation, flags, flag)
     return mean, std
 
 
+@numba.njit(cache=True, nogil=True)
+def finish_update(
+    b, h, status, nis, dof, rejected_groups, tip_fused_rows, active, log_weight, running,
+    all_wide, measured, three_d, flags, out_nis, out_dof, rejected, bad_run, tip_fused,
+    noise_scale, adapt, gates, forgetting, low, high, flag, x, P, initialised, prior,
+    deviation,
+):  # fmt: skip
+    """:func:`apply_update`, then, where no closed form is needed and every trial has at most
+    one hypothesis, :func:`normalise_single` and :func:`report`.
+
+    Returns ``apply_update``'s ``(spawn, first, row, closed_form)``, then ``(first_only,
+    single, finished, mean, std)``: ``finished`` when the estimate (mean, std) is reported
+    here; otherwise the caller does the rest (closed form, several hypotheses).
+    """
+    spawn, first, row, closed_form = apply_update(
+        b, h, status, nis, dof, rejected_groups, tip_fused_rows, active, log_weight, running,
+        all_wide, measured, three_d, flags, out_nis, out_dof, rejected, bad_run, tip_fused,
+        noise_scale, adapt, gates, forgetting, low, high, flag,
+    )  # fmt: skip
+    B = active.shape[0]
+    first_only, single, finished = False, False, False
+    mean, std = np.full(B, np.nan), np.full(B, np.nan)
+    if not closed_form:
+        first_only, single = normalise_single(active, log_weight)
+        if single:
+            mean, std = report(x, P, active, log_weight, initialised, prior, deviation, flags,
+                               flag)  # fmt: skip
+            finished = True
+    return spawn, first, row, closed_form, first_only, single, finished, mean, std
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types
@@ -761,24 +480,13 @@ def warm_up() -> None:
             np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag,
         )  # fmt: skip
         normalise_single(active, lw)
-        out = gate_and_fuse(
-            S, np.zeros((1, m)), np.zeros((1, n, m)), np.ones((1, G)), present,
-            np.ones(1, dtype=bool), x[:, 0], P[:, 0], d, 0.01, 5.0, 10.0, 5.0,
-            shared(np.full(G + 1, 20.0)), 1.0, flag,
+        finish_update(
+            rows, rows, out[6], out[2], out[3], out[7], np.ones(1, dtype=bool), active, lw,
+            running, all_wide, measured, True, flags, np.zeros(B), np.zeros(B, dtype=np.int64),
+            np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64), np.zeros(B, dtype=bool),
+            np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag, x, P, running,
+            prior, 1 if n > 2 else -1,
         )  # fmt: skip
-        commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(), lw,
-                      np.ones(B), 0.99)  # fmt: skip
-        for has_velocity in (True, False):
-            c = np.ones((B, G, 3))
-            eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
-            W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
-            update_3d(
-                rows, rows, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
-                np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
-                np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
-                1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)), 1.0,
-                flag,
-            )  # fmt: skip
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
 
@@ -787,12 +495,10 @@ __all__ = [
     "apply_update",
     "begin_frame_3d",
     "begin_step",
-    "commit_update",
-    "gate_and_fuse",
+    "finish_update",
     "leading",
     "normalise_single",
     "prepare_fuse",
     "report",
-    "update_3d",
     "warm_up",
 ]
