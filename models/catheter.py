@@ -442,24 +442,32 @@ class Catheter:
     def points_of(self, q: Array) -> Array:
         """:meth:`points` of a few configurations q (k, 3) at once through the
         single-configuration path (the same numbers to rounding), (k, 1 + n_markers, 3), mm."""
-        q = np.asarray(q, dtype=float)
-        if q.ndim != 2 or q.shape[1] != 3:
+        q = check_joints(q)
+        if q.ndim != 2:
             raise ValueError(f"q must have shape (k, 3), got {q.shape}")
-        return self._points_single([_joint_floats(row, "q") for row in q])
+        # The bases' rows of every configuration at once (the same products as one by one).
+        eta_p, eta_d = self.proximal.eta.values(q[:, 1]), self.distal.eta.values(q[:, 2])
+        eta = np.concatenate([eta_p, eta_d], -1)
+        return self._points_from_rows(np.ascontiguousarray(eta))
 
     def _points_single(self, joints: list[list[float]]) -> Array:
         """The tip's and the markers' points (tip first) of configurations given as float
-        triples, compiled (:func:`models._shape_kernels.points_from_basis`), (k, P, 3)."""
-        plan = self._marker_plan
+        triples, (k, P, 3)."""
         rows = [
             _joint_basis_rows(self.proximal.eta, q_p, False)[0]
             + _joint_basis_rows(self.distal.eta, q_d, False)[0]
             for _, q_p, q_d in joints
         ]
+        return self._points_from_rows(np.array(rows))
+
+    def _points_from_rows(self, eta: Array) -> Array:
+        """The tip's and the markers' points (tip first) from the joint bases' rows (k, m),
+        compiled (:func:`models._shape_kernels.points_from_basis`), (k, P, 3)."""
+        plan = self._marker_plan
         column_1, column_2 = plan.tip_first_columns
         cd2, sd2 = self._delta_2_cos_sin
         return points_from_basis(
-            np.array(rows), plan.G_single, plan.weights_single, column_1, column_2, cd2, sd2
+            eta, plan.G_single, plan.weights_single, column_1, column_2, cd2, sd2
         )
 
     @cached_property
