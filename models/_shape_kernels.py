@@ -74,8 +74,11 @@ def points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2):
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel once per process."""
     columns = np.zeros(1, dtype=np.int64)
-    points_from_basis(np.zeros((1, 2)), np.zeros((2, 2)), np.zeros((4, 4)), columns, columns,
-                      1.0, 0.0)  # fmt: skip
+    # The plan's matrices are read-only (a type of their own): as the model passes them.
+    G, W = np.zeros((2, 2)), np.zeros((4, 4))
+    for matrix in (G, W):
+        matrix.flags.writeable = False
+    points_from_basis(np.zeros((1, 2)), G, W, columns, columns, 1.0, 0.0)
 
 
 __all__ = ["points_from_basis", "warm_up"]

@@ -383,3 +383,58 @@ def test_a_frame_s_position_groups_are_assembled_with_their_presence_and_invaria
                 skew = 0.5 * (A[0, 1] - A[1, 0])
                 expected = np.array([[horizontal, skew, 0], [-skew, horizontal, 0], [0, 0, A[2, 2]]])
                 np.testing.assert_allclose(R_bar[t, g], expected, rtol=1e-15)
+
+
+_NO_COMPILE_SCRIPT = """
+import importlib, math, numba, numpy as np
+from models.catheter import default_catheter
+from tracker.estimators import make_estimator
+from tracker.types import Observation
+
+modules = [importlib.import_module(f"tracker.estimators.{name}") for name in (
+    "ukf_kernels", "ukf_rules", "ukf_gate", "measurement_kernels", "linalg_kernels",
+    "grid_kernels")] + [importlib.import_module("models._shape_kernels")]
+
+def signatures():
+    return {(m.__name__, name): len(k.signatures) for m in modules
+            for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
+
+catheter = default_catheter()
+estimators = [make_estimator(name, catheter) for name in ("ukf", "ukf-position", "grid")]
+before = signatures()
+rng = np.random.default_rng(3)
+cov = np.diag([0.01, 0.01, 0.005])
+n_markers = len(catheter.marker_arclengths_mm)
+for k in range(40):
+    q = np.array([0.3 + 0.01 * k, 0.6, -0.4 + 0.02 * k])
+    points = catheter.points(q)
+    a = q[0] + 1.0
+    turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    measured = points @ turn.T + rng.normal(0, 0.1, points.shape)
+    if k % 7 == 3:
+        measured[0] += 5.0  # a gross error: the gate's other paths
+    observation = Observation(
+        time_s=0.05 * k, q=q, q_dot=np.array([0.2, 0.0, 0.4]), tip_b_mm=measured[0],
+        tip_cov_b=cov, markers_b_mm=measured[1:],
+        markers_cov_b=np.broadcast_to(cov, (n_markers, 3, 3)).copy())
+    for estimator in estimators:
+        estimator.step(observation)
+after = signatures()
+print(sorted(f"{m}.{n}" for (m, n) in after if after[(m, n)] != before[(m, n)]))
+"""
+
+
+def test_a_run_compiles_nothing_after_the_filters_are_made():
+    """The warm-ups compile (or load) every kernel with the argument types a run passes
+    (read-only index and plan arrays included), so that no frame waits for the compiler
+    and no thread compiles while another one runs: a compilation during a live run stalls
+    the loop and can deadlock with the threads of the outputs. In a fresh interpreter: a
+    kernel's new signature counts whether compiled or loaded from the disk cache."""
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-c", _NO_COMPILE_SCRIPT], capture_output=True, text=True, check=True,
+        timeout=600,
+    )  # fmt: skip
+    assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout

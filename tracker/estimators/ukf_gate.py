@@ -364,17 +364,21 @@ def warm_up() -> None:
             )  # fmt: skip
             commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(),
                           lw, np.ones(B), 0.99)  # fmt: skip
-        for has_velocity in (True, False):
-            c = np.ones((B, G, 3))
-            eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
-            W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
-            update_3d(
-                rows, rows, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
-                np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
-                np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
-                1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)), 1.0,
-                flag,
-            )  # fmt: skip
+        # The rows as a bank of one passes them (read-only indices) and as gathered.
+        for index in (rows, shared(np.zeros(1, dtype=np.intp))):
+            for has_velocity in (True, False):
+                c = np.ones((B, G, 3))
+                eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
+                W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
+                update_3d(
+                    index, index, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
+                    np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
+                    np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
+                    1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)),
+                    1.0, flag,
+                )  # fmt: skip
+            commit_update(index, index, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(),
+                          lw, np.ones(B), 0.99)  # fmt: skip
 
 
 __all__ = ["FLAG_ORDER", "commit_update", "gate_and_fuse", "update_3d", "warm_up"]

@@ -471,22 +471,19 @@ def warm_up() -> None:
                 np.ones(1, dtype=bool), x[:, 0], P[:, 0], d, 0.01, 5.0, 10.0, 5.0,
                 shared(np.full(G + 1, 20.0)), 1.0, flag,
             )  # fmt: skip
-        rows = np.zeros(1, dtype=np.intp)
         lw = np.zeros((B, H))
-        apply_update(
-            rows, rows, out[6], out[2], out[3], out[7], np.ones(1, dtype=bool), active, lw,
-            running, all_wide, measured, True, flags, np.zeros(B), np.zeros(B, dtype=np.int64),
-            np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64), np.zeros(B, dtype=bool),
-            np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag,
-        )  # fmt: skip
+        # The rows as a bank of one passes them (read-only indices) and as gathered.
+        for rows in (np.zeros(1, dtype=np.intp), shared(np.zeros(1, dtype=np.intp))):
+            args = (
+                rows, rows, out[6], out[2], out[3], out[7], np.ones(1, dtype=bool), active, lw,
+                running, all_wide, measured, True, flags, np.zeros(B),
+                np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64),
+                np.zeros(B, dtype=np.int64), np.zeros(B, dtype=bool), np.ones(B), True,
+                shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag,
+            )  # fmt: skip
+            apply_update(*args)
+            finish_update(*args, x, P, running, prior, 1 if n > 2 else -1)
         normalise_single(active, lw)
-        finish_update(
-            rows, rows, out[6], out[2], out[3], out[7], np.ones(1, dtype=bool), active, lw,
-            running, all_wide, measured, True, flags, np.zeros(B), np.zeros(B, dtype=np.int64),
-            np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64), np.zeros(B, dtype=bool),
-            np.ones(B), True, shared(np.full(8, 10.0)), 0.9, 0.5, 2.0, flag, x, P, running,
-            prior, 1 if n > 2 else -1,
-        )  # fmt: skip
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
 
