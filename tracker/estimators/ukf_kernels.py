@@ -1,35 +1,38 @@
 """The UKF's per-hypothesis arithmetic, compiled (numba): the numbers behind the rules of
-:mod:`tracker.estimators.ukf_core`, which stay in Python and decide what is done to whom.
+:mod:`tracker.estimators.ukf_rules` and :mod:`tracker.estimators.ukf_gate`.
 
 A hypothesis' state has one to four components and a frame a few groups of two or three
 values, so numpy spends ten times the arithmetic on calling its stacked routines for each
-small array. Here each stage of a step is one compiled loop over the rows (hypotheses) it is
-given; the live filter (one row) and the trial-batched studies (thousands) call the same
-loops:
+small array. Here each stage is one compiled loop over the rows (hypotheses) it is given;
+the live filter (one row) and the trial-batched studies (thousands) call the same loops:
 
-- :func:`predict_rows`: the linear process model, ``F x``, ``F P F^T + Q`` (delta_L wrapped),
-  the finiteness test and the Cholesky factor that the update's sigma points reuse, the std
-  cap (:func:`cap_rows`);
-- :func:`innovation_3d`: van der Merwe's sigma points, the 3-D measurement model at each of
-  them in the model frame (:meth:`~tracker.estimators.measurement.FrameGroups.predict`),
+- :func:`predict_rows` (one row: ``_predict_row``): the linear process model, ``F x``,
+  ``F P F^T + Q`` (delta_L wrapped), the finiteness test, the std cap (:func:`cap_rows`) and
+  the Cholesky factor that the update's sigma points reuse;
+- :func:`sigma_factors`, :func:`row_factors`, :func:`sigma_rows`: the sigma points' factors
+  (the predict's where it has one) and van der Merwe's sigma points;
+- :func:`predict_3d` and :func:`innovation_3d`: the 3-D measurement model at the sigma
+  points in the model frame (:meth:`~tracker.estimators.measurement.FrameGroups.predict`),
   the measured vectors turned into that frame, and the innovation statistics;
 - :func:`innovation_stats`: the innovation statistics of predictions made elsewhere (the
   single views' projections): the weighted mean, the residual, the innovation covariance
   ``S`` with its noise blocks, the cross-covariance ``Pxz`` and each group's squared
   residual under its own block of ``S`` (the gate);
-- :func:`fuse_rows`: the update with only the inlying groups (the others made inert: zero
-  rows and columns, unit variance), one Cholesky solve for the gain, the NIS and the log
-  determinant, and the posterior mean and covariance.
+- :func:`fuse_rows` (one row: ``_fuse_row``): the update with only the inlying groups (the
+  others made inert: zero rows and columns, unit variance), one Cholesky solve for the gain,
+  the NIS and the log determinant, and the posterior mean and covariance;
+- :func:`mixture_rows`: two Gaussians matched by their moments (a doubtful group's update,
+  hypotheses that agree).
 
-Factorisations are Cholesky's, as LAPACK's ``potrf`` computes them (the same operations in
-the same order for these sizes: results equal to rounding), with the documented jitter of
-:mod:`tracker.estimators._linalg` on a second attempt where the Python code retried.
-Every kernel is ``njit(cache=True, nogil=True)``, compiled to ``__pycache__`` once and
-loaded afterwards; :func:`warm_up` compiles or loads them when a filter is made, so that no
-frame waits. Arrays are float64 and C-contiguous (another layout would compile a second
-version on first use).
+The small linear algebra is :mod:`tracker.estimators.linalg_kernels` (Cholesky as LAPACK's
+``potrf`` computes it, with the documented jitter of :mod:`tracker.estimators._linalg` on a
+second attempt). Every kernel is ``njit(cache=True, nogil=True)``, compiled to
+``__pycache__`` once on a machine and loaded afterwards; :func:`warm_up` compiles or loads
+them with the argument types a run passes, once per process when the first filter is made,
+so that no frame waits and nothing compiles while the live loop's threads run
+(``tests/tracker/test_ukf_kernels.py`` checks it). Arrays are float64 and C-contiguous
+(another layout would compile a second version on first use).
 """
-
 from __future__ import annotations
 
 import functools
