@@ -36,6 +36,43 @@ def _weights(n, alpha=0.3, beta=2.0, kappa=0.0):
     return Wm, Wc, n + lam
 
 
+def _predict(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_variance):
+    """predict_row over rows (x (r, n), P (r, n, n) in place): (ok (r,), L (r, n, n))."""
+    r, n = x.shape
+    L = np.zeros((r, n, n))
+    ok = np.array([
+        K.predict_row(x[i], P[i], Q[i], decay[i], prior[i, 0], prior[i, 1], dt[i], deviation,
+                      rate, rate_noise, max_variance, L[i], np.empty((n, n)))
+        for i in range(r)
+    ])  # fmt: skip
+    return ok, L
+
+
+def _factors(P):
+    """Fresh sigma-point factors of covariances (r, n, n) (no predict's factor to reuse)."""
+    r, n = P.shape[:2]
+    rows = np.arange(r)
+    none = np.zeros((r, 1), dtype=bool)
+    _, L, ok = K.row_factors(rows, np.zeros(r, dtype=np.intp), P[:, None].copy(),
+                             np.zeros((r, 1, n, n)), none)  # fmt: skip
+    return L, ok
+
+
+def _fuse(S, rho, Pxz, inlier, d, x, P):
+    """fuse_row over rows: (products, logdet, ok, x_post, P_post) as arrays."""
+    r, m = rho.shape
+    n = Pxz.shape[1]
+    products = np.zeros((r, n + 1, n + 1))
+    logdet, ok = np.full(r, np.nan), np.zeros(r, dtype=bool)
+    x_post, P_post = np.empty((r, n)), np.empty((r, n, n))
+    for i in range(r):
+        logdet[i], ok[i] = K.fuse_row(
+            S[i], rho[i], Pxz[i], inlier[i], d, x[i], P[i], products[i], x_post[i], P_post[i],
+            np.empty((m, m)), np.empty((n + 1, m)), np.empty((n + 1, m)), np.empty(m, bool),
+        )  # fmt: skip
+    return products, logdet, ok, x_post, P_post
+
+
 # ------------------------------------------------------------------------------ predict
 @pytest.mark.parametrize("n, deviation, rate", [(1, -1, -1), (3, 1, -1), (4, 2, 1), (2, -1, 1)])
 def test_predict_is_the_linear_process_model(n, deviation, rate):
@@ -72,7 +109,7 @@ def test_predict_is_the_linear_process_model(n, deviation, rate):
         xi[0] = _wrap(xi[0])
         expected_x.append(xi)
         expected_P.append(Pi)
-    ok, L = K.predict_rows(x, P, Q, decay, prior, dt, deviation, rate, qa, 10.0)
+    ok, L = _predict(x, P, Q, decay, prior, dt, deviation, rate, qa, 10.0)
     assert ok.all()
     np.testing.assert_allclose(x, expected_x, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(P, expected_P, rtol=1e-12, atol=1e-15)
@@ -86,7 +123,7 @@ def test_predict_caps_the_std_keeping_correlations_and_flags_what_is_not_finite(
     P[2, 1, 2] = np.nan
     x = np.zeros((3, 3))
     before = P.copy()
-    ok, L = K.predict_rows(
+    ok, L = _predict(
         x, P, np.zeros(3), np.ones(3), np.zeros((3, 2)), np.zeros(3), -1, -1, 0.0, 0.5
     )
     assert ok.tolist() == [True, True, False]
@@ -100,10 +137,10 @@ def test_a_covariance_at_the_edge_of_definiteness_factorises_with_the_jitter():
     # Rank one plus nothing: Cholesky fails on it, the documented jitter makes it definite.
     v = np.array([1.0, 2.0, 3.0])
     P = np.outer(v, v)[None]
-    L, ok = K.sigma_factors(P.copy(), 1.0)
+    L, ok = _factors(P.copy())
     assert ok[0]
     np.testing.assert_allclose(L[0] @ L[0].T, P[0], atol=1e-7)
-    L, ok = K.sigma_factors(-np.eye(3)[None], 1.0)
+    L, ok = _factors(-np.eye(3)[None])
     assert not ok[0]
 
 
@@ -172,7 +209,9 @@ def test_innovation_is_the_unscented_transform_of_the_3d_model(n, deviation, rat
     # The same statistics from the model's predictions made apart.
     sigmas, offsets2 = K.sigma_rows(x, L, spread)
     np.testing.assert_allclose(offsets2, offsets, rtol=1e-14)
-    hs = K.predict_3d(sigmas, c, JK, x[:, 0].copy(), deviation, rate, has_velocity)
+    hs = np.empty((r, sigmas.shape[1], 3 * G))
+    for i in range(r):
+        K.predict_3d(sigmas[i], c[i], JK[i], x[i, 0], deviation, rate, has_velocity, hs[i])
     z = np.empty((r, 3 * G))
     for i in range(r):
         t = -(q_r[i] + x[i, 0])
@@ -241,7 +280,7 @@ def test_fuse_uses_only_the_inlying_groups():
     rows = [_statistics(rng, n, G, d) for _ in range(4)]
     x, P, Pxz, S, rho = (np.stack(a) for a in zip(*rows, strict=True))
     inlier = np.array([[1, 1, 1, 1], [1, 0, 1, 1], [0, 0, 0, 1], [1, 1, 0, 0]], dtype=bool)
-    products, logdet, ok, x_post, P_post = K.fuse_rows(S, rho, Pxz, inlier, d, x, P)
+    products, logdet, ok, x_post, P_post = _fuse(S, rho, Pxz, inlier, d, x, P)
     assert ok.all()
     for i in range(4):
         ex, eP, nis, ld = _reference_update(x[i], P[i], Pxz[i], S[i], rho[i], inlier[i], d)
@@ -250,7 +289,7 @@ def test_fuse_uses_only_the_inlying_groups():
         assert products[i, n, n] == pytest.approx(nis, rel=1e-10)
         assert logdet[i] == pytest.approx(ld, rel=1e-10)
     S[0, 0, 0] = -1.0  # not positive definite: no update, reported
-    products, logdet, ok, x_post, _ = K.fuse_rows(S, rho, Pxz, inlier, d, x, P)
+    products, logdet, ok, x_post, _ = _fuse(S, rho, Pxz, inlier, d, x, P)
     assert not ok[0] and math.isnan(logdet[0]) and not products[0].any()
     np.testing.assert_allclose(x_post[0], x[0])
 

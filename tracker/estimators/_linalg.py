@@ -1,8 +1,7 @@
 """Small dense linear algebra of the bending-plane filters in numpy: Cholesky factors with a
 documented jitter, the square root of a prior covariance, the inverse of a few symmetric
-positive-definite matrices, and the indices of diagonal blocks (the grid filter's and the
-filters' set-up; the UKF's per-frame arithmetic is compiled in
-:mod:`tracker.estimators.ukf_kernels`, with the same jitter).
+positive-definite matrices (the grid filter's and the filters' set-up; the per-frame
+arithmetic is compiled in :mod:`tracker.estimators.linalg_kernels`, with the same jitter).
 
 For one matrix LAPACK is called directly: numpy's stacked wrappers cost ten times the
 arithmetic on matrices of a few rows.
@@ -11,7 +10,6 @@ arithmetic on matrices of a few rows.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 from scipy.linalg import lapack
@@ -89,19 +87,10 @@ def spd_inverse(A: Array) -> Array:
     return np.swapaxes(inverse, -1, -2) @ inverse
 
 
-@lru_cache(maxsize=64)
-def block_index(G: int, d: int) -> Array:
-    """Flat indices of the G diagonal d x d blocks of a (G d, G d) matrix, block-major."""
-    m = G * d
-    g, i, j = np.meshgrid(np.arange(G), np.arange(d), np.arange(d), indexing="ij")
-    return ((g * d + i) * m + g * d + j).ravel()
-
-
 __all__ = [
     "COVARIANCE_JITTER",
     "COVARIANCE_JITTER_FLOOR",
     "CovarianceError",
-    "block_index",
     "cholesky",
     "sigma_sqrt",
     "spd_inverse",

@@ -88,12 +88,6 @@ def wrap(angle: Array) -> Array:
     return (angle + math.pi) % _TWO_PI - math.pi
 
 
-def _xy(vectors: Array) -> Array:
-    """The (x, y) components of vectors (..., 3) as complex numbers ``x + i y`` (a view):
-    a turn about z is then one complex product."""
-    return vectors[..., :2].view(complex)[..., 0]
-
-
 def is_every_trial(b: Array | slice, n: int) -> bool:
     """Whether the trial indices b are 0, 1, ..., n - 1 (then no gather is needed; a slice
     stands for every trial)."""
@@ -185,65 +179,6 @@ class FrameGroups:
         """The noise covariance the filters use (model frame), (r, G, 3, 3)."""
         return self.R_bar[b]
 
-    def measured(self, b: Array, about: Array) -> Array:
-        """The measured vectors in the model frame at angle ``about`` (r,):
-        ``Rz(q_r + about)^T y``, (r, G, 3)."""
-        out = self.y[b].copy()
-        xy = _xy(out)
-        np.multiply(xy, np.exp(-1j * (self.q[b, 0] + about))[:, None], out=xy)
-        return out
-
-    def predict(
-        self,
-        b: Array,
-        sigmas: Array,
-        rate: int | None = None,
-        deviation: int | None = None,
-        about: Array | None = None,
-    ) -> Array:
-        """``Rz(x_0 - about) (c + J dq + K quadratic_terms(dq))`` for sigma points (r, S, n) of
-        trials b, in the model frame at angle ``about`` (r,) (None: ``Rz(q_r + x_0)``, in
-        {B}): (r, S, G, 3).
-
-        ``deviation``: index of dq = (dq_p, dq_d) in the state; ``rate``: index of the torsion
-        rate, which adds ``rate e_z x c_tip`` to the velocity group.
-        """
-        whole = is_every_trial(b, self.y.shape[0])
-        c = self.c if whole else self.c[b]
-        JK = self.JK if whole else self.JK[b]
-        if about is None:
-            about = -self.q[b, 0]
-        return ukf_kernels.predict_3d(
-            np.ascontiguousarray(sigmas, dtype=float), np.ascontiguousarray(c),
-            np.ascontiguousarray(JK), np.ascontiguousarray(about, dtype=float),
-            -1 if deviation is None else deviation, -1 if rate is None else rate,
-            self.has_velocity_group,
-        ).reshape(sigmas.shape[:2] + c.shape[1:])
-
-    def innovation(
-        self, b: Array, x: Array, factor: Array, spread: float, scale: Array, M: Array,
-        Wm: Array, Wc: Array, rate: int, deviation: int,
-    ) -> tuple[Array, Array, Array, Array, Array]:
-        """The UKF's innovation statistics of hypotheses x (r, n) of trials b, with the lower
-        Cholesky factors of their covariances, in the model frame at each one's prior mean:
-        ``S`` (r, m, m) with the noise blocks ``scale R_bar + M`` (``scale`` (r,), the model
-        error M of every trial (B, G, 3, 3)), the residual (r, m), ``Pxz`` (r, n, m), each
-        group's squared residual under its block of S (r, G) and the sigma points' offsets
-        (:func:`~tracker.estimators.ukf_kernels.innovation_3d`; ``rate``, ``deviation``:
-        indices in the state, -1 for none)."""
-        whole = is_every_trial(b, self.y.shape[0])
-        if whole:
-            c, JK, y, R, M = self.c, self.JK, self.y, self.R_bar, M
-        else:
-            c, JK, y, R, M = self.c[b], self.JK[b], self.y[b], self.R_bar[b], M[b]
-        contiguous = np.ascontiguousarray
-        return ukf_kernels.innovation_3d(
-            x, factor, spread, contiguous(c), contiguous(JK), contiguous(y),
-            contiguous(self.q[b, 0]), contiguous(R), contiguous(scale, dtype=float), M, Wm,
-            Wc, deviation, rate,
-            self.has_velocity_group,
-        )  # fmt: skip
-
     def without_velocity(self, mask: Array) -> FrameGroups:
         """The same groups with the velocity group removed where ``mask`` (B,) is True."""
         if not self.has_velocity_group or not np.any(mask):
@@ -285,9 +220,6 @@ class ViewGroups:
     def noise(self, b: Array) -> Array:
         return self.R[b]
 
-    def measured(self, b: Array, about: Array) -> Array:
-        return self.z[b]
-
     def predict(
         self,
         b: Array,
@@ -319,8 +251,12 @@ class ViewGroups:
         self, b: Array, x: Array, factor: Array, spread: float, scale: Array, M: None,
         Wm: Array, Wc: Array, rate: int, deviation: int,
     ) -> tuple[Array, Array, Array, Array, Array]:
-        """As :meth:`FrameGroups.innovation`, in image coordinates (2-D groups; the noise is
-        ``scale R``, without a model error)."""
+        """The UKF's innovation statistics of hypotheses x (r, n) of trials b in image
+        coordinates, with the lower Cholesky factors of their covariances: ``S`` (r, m, m)
+        with the noise blocks ``scale R`` (no model error: it is defined for 3-D data), the
+        residual (r, m), ``Pxz`` (r, n, m), each point's squared residual under its block of
+        S (r, G) and the sigma points' offsets (3-D frames:
+        :func:`~tracker.estimators.ukf_gate.update_3d`)."""
         noise = self.R[b] * np.asarray(scale, dtype=float)[:, None, None, None]
         sigmas, offsets = ukf_kernels.sigma_rows(x, factor, spread)
         r = x.shape[0]

@@ -173,7 +173,6 @@ class FilterBank:
         self._deviation_index = -1 if self.deviation is None else self.deviation
         measurement_kernels.warm_up()
         ukf_kernels.warm_up()
-        ukf_gate.warm_up()
         ukf_rules.warm_up()
         self.reset(n_trials)
 

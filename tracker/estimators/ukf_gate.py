@@ -4,20 +4,20 @@ groups that pass, the mixture with the update without a doubtful group, the fram
 likelihood under the hypothesis and the update's status (:func:`gate_and_fuse`); the
 write-back (:func:`commit_update`); both for a 3-D frame in one call with its innovation
 (:func:`update_3d`). Used by :class:`~tracker.estimators.ukf_core.FilterBank` for the live
-filter and the batch alike (docs/design.md, "Joint consistency and doubtful groups").
-Flags are passed as integers in the order of ``FLAG_ORDER``.
+filter and the batch alike (docs/design.md, "Joint consistency and doubtful groups"), and
+warmed up by :func:`tracker.estimators.ukf_rules.warm_up`. Flags are passed as integers in
+the order of ``FLAG_ORDER``.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numba
 import numpy as np
 
 from tracker.estimators.linalg_kernels import _lu_solve
-from tracker.estimators.ukf_kernels import _fuse_row, _mixture_row, innovation_3d, row_factors
+from tracker.estimators.ukf_kernels import _mixture_row, fuse_row, innovation_3d, row_factors
 
 # The flags the kernels set, in the order of the ``flags`` array they are given.
 FLAG_ORDER = (
@@ -178,7 +178,7 @@ def gate_and_fuse(
         row_in = inlier[i]
         for g in range(G):
             row_in[g] = present[i, g] and d2[i, g] <= threshold
-        logdet, ok_S = _fuse_row(
+        logdet, ok_S = fuse_row(
             S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i], P_post[i],
             Sm, A, solved, keep,
         )  # fmt: skip
@@ -187,7 +187,7 @@ def gate_and_fuse(
             count += row_in[g]
         if count >= 2 and products[n, n] > gates[count]:
             _exclude_inconsistent(S[i], rho[i], row_in, d, threshold)
-            logdet, ok_S = _fuse_row(
+            logdet, ok_S = fuse_row(
                 S[i], rho[i], Pxz[i], row_in, d, x[i], P[i], products, x_post[i],
                 P_post[i], Sm, A, solved, keep,
             )  # fmt: skip
@@ -210,7 +210,7 @@ def gate_and_fuse(
                 )
                 w *= 1.0 / (1.0 + math.exp(min(log_ratio, 700.0)))
         if any_doubt:
-            _fuse_row(
+            fuse_row(
                 S[i], rho[i], Pxz[i], fewer, d, x[i], P[i], alt_products, x_alt, P_alt, Sm,
                 A, solved, keep,
             )  # fmt: skip
@@ -336,49 +336,4 @@ def update_3d(
     return status, nis, dof, rejected, inlier, shown, rho
 
 
-@functools.cache
-def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types
-    (the flag values and the gate tables are shared read-only arrays, a type of their own)."""
-
-    def shared(a):
-        a.flags.writeable = False
-        return a
-
-    flag = shared(np.arange(1, 9, dtype=np.int64))
-    for n in (1, 3, 4):
-        B, H, G = 1, 2, 2
-        x = np.zeros((B, H, n))
-        P = np.broadcast_to(np.eye(n), (B, H, n, n)).copy()
-        L = np.broadcast_to(np.eye(n), (B, H, n, n)).copy()
-        ok = np.ones((B, H), dtype=bool)
-        rows = np.zeros(1, dtype=np.intp)
-        lw = np.zeros((B, H))
-        for d in (2, 3):
-            m = G * d
-            S = np.broadcast_to(np.eye(m), (1, m, m)).copy()
-            out = gate_and_fuse(
-                S, np.zeros((1, m)), np.zeros((1, n, m)), np.ones((1, G)),
-                np.ones((1, G), dtype=bool), np.ones(1, dtype=bool), x[:, 0], P[:, 0], d, 0.01,
-                5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)), 1.0, flag,
-            )  # fmt: skip
-            commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(),
-                          lw, np.ones(B), 0.99)  # fmt: skip
-        # The rows as a bank of one passes them (read-only indices) and as gathered.
-        for index in (rows, shared(np.zeros(1, dtype=np.intp))):
-            for has_velocity in (True, False):
-                c = np.ones((B, G, 3))
-                eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
-                W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
-                update_3d(
-                    index, index, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
-                    np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
-                    np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
-                    1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)),
-                    1.0, flag,
-                )  # fmt: skip
-            commit_update(index, index, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(),
-                          lw, np.ones(B), 0.99)  # fmt: skip
-
-
-__all__ = ["FLAG_ORDER", "commit_update", "gate_and_fuse", "update_3d", "warm_up"]
+__all__ = ["FLAG_ORDER", "commit_update", "gate_and_fuse", "update_3d"]

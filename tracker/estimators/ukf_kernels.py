@@ -6,21 +6,21 @@ values, so numpy spends ten times the arithmetic on calling its stacked routines
 small array. Here each stage is one compiled loop over the rows (hypotheses) it is given;
 the live filter (one row) and the trial-batched studies (thousands) call the same loops:
 
-- :func:`predict_rows` (one row: ``_predict_row``): the linear process model, ``F x``,
-  ``F P F^T + Q`` (delta_L wrapped), the finiteness test, the std cap (:func:`cap_rows`) and
-  the Cholesky factor that the update's sigma points reuse;
-- :func:`sigma_factors`, :func:`row_factors`, :func:`sigma_rows`: the sigma points' factors
-  (the predict's where it has one) and van der Merwe's sigma points;
+- :func:`predict_row`: the linear process model, ``F x``, ``F P F^T + Q`` (delta_L
+  wrapped), the finiteness test, the std cap and the Cholesky factor that the update's sigma
+  points reuse;
+- :func:`row_factors`, :func:`sigma_rows`: the sigma points' factors (the predict's where
+  it has one) and van der Merwe's sigma points;
 - :func:`predict_3d` and :func:`innovation_3d`: the 3-D measurement model at the sigma
-  points in the model frame (:meth:`~tracker.estimators.measurement.FrameGroups.predict`),
-  the measured vectors turned into that frame, and the innovation statistics;
+  points in the model frame, the measured vectors turned into that frame, and the
+  innovation statistics;
 - :func:`innovation_stats`: the innovation statistics of predictions made elsewhere (the
   single views' projections): the weighted mean, the residual, the innovation covariance
   ``S`` with its noise blocks, the cross-covariance ``Pxz`` and each group's squared
   residual under its own block of ``S`` (the gate);
-- :func:`fuse_rows` (one row: ``_fuse_row``): the update with only the inlying groups (the
-  others made inert: zero rows and columns, unit variance), one Cholesky solve for the gain,
-  the NIS and the log determinant, and the posterior mean and covariance;
+- :func:`fuse_row`: the update with only the inlying groups (the others made inert: zero
+  rows and columns, unit variance), one Cholesky solve for the gain, the NIS and the log
+  determinant, and the posterior mean and covariance;
 - :func:`mixture_rows`: two Gaussians matched by their moments (a doubtful group's update,
   hypotheses that agree).
 
@@ -53,21 +53,43 @@ from tracker.estimators.linalg_kernels import (
 
 # ------------------------------------------------------------------------------ predict
 @numba.njit(cache=True, nogil=True)
-def cap_rows(P, max_variance):
-    """Scale row and column 0 of each covariance (r, n, n) whose delta_L variance exceeds
-    ``max_variance`` so that it equals it (a std cap that keeps the correlations); which rows
-    were capped (r,)."""
-    r = P.shape[0]
-    capped = np.zeros(r, dtype=np.bool_)
-    for i in range(r):
-        capped[i] = _cap_row(P[i], max_variance)
-    return capped
-
-
-@numba.njit(cache=True, nogil=True)
-def _predict_row(x, P, Q, decay, prior_p, prior_d, dt, deviation, rate, rate_noise,
+def predict_row(x, P, Q, decay, prior_p, prior_d, dt, deviation, rate, rate_noise,
                  max_variance, L, work):  # fmt: skip
-    """One hypothesis of :func:`predict_rows` (x (n,), P (n, n) in place, L its factor)."""
+    """The process model of one hypothesis in place, and the Cholesky factor of its predicted
+    covariance; whether the prediction is usable.
+
+    It is linear: a random walk of delta_L (variance ``Q`` over the interval), the torsion
+    rate integrated (a random walk of intensity ``rate_noise``), the deviation an
+    Ornstein-Uhlenbeck process (correlation ``decay`` over the interval, stationary variance
+    ``prior_p``, ``prior_d``); delta_L is wrapped and its variance capped at ``max_variance``
+    (row and column 0 scaled: the correlations are kept).
+
+    Parameters
+    ----------
+    x : array (n,), P : array (n, n)
+        State and covariance, changed in place.
+    Q : float
+        Variance of the torsion change over the interval, rad^2.
+    decay : float
+        The deviation's correlation over the interval (unused without a deviation).
+    prior_p, prior_d : float
+        The deviation's prior variance at the frame's joints, mm^2.
+    dt : float
+        Frame interval, s (the rate's integration).
+    deviation, rate : int
+        Index of the deviation (dq_p, dq_d) and of the torsion rate in the state; -1: none.
+    rate_noise : float
+        Process noise of the rate, rad^2/s^3.
+    max_variance : float
+        The delta_L variance cap, rad^2.
+    L, work : arrays (n, n)
+        The factor (written) and scratch.
+
+    Returns
+    -------
+    bool
+        Finite, positive delta_L variance, and (n > 1) positive definite after the jitter.
+    """
     n = x.shape[0]
     P[0, 0] += Q
     if deviation >= 0:
@@ -107,55 +129,6 @@ def _predict_row(x, P, Q, decay, prior_p, prior_d, dt, deviation, rate, rate_noi
     return _cholesky_jittered(P, L, work)
 
 
-@numba.njit(cache=True, nogil=True)
-def predict_rows(x, P, Q, decay, prior, dt, deviation, rate, rate_noise, max_variance):
-    """The process model of r hypotheses in place, and the Cholesky factors of their
-    predicted covariances.
-
-    It is linear: a random walk of delta_L (variance ``Q`` over the interval), the torsion
-    rate integrated (a random walk of intensity ``rate_noise``), the deviation an
-    Ornstein-Uhlenbeck process (correlation ``decay`` over the interval, stationary variance
-    ``prior``); delta_L is wrapped and its variance capped at ``max_variance`` (row and
-    column 0 scaled: the correlations are kept).
-
-    Parameters
-    ----------
-    x : array (r, n), P : array (r, n, n)
-        States and covariances, changed in place.
-    Q : array (r,)
-        Variance of the torsion change over the interval, rad^2.
-    decay : array (r,)
-        The deviation's correlation over the interval (unused without a deviation).
-    prior : array (r, 2)
-        The deviation's prior variance at the frame's joints, mm^2.
-    dt : array (r,)
-        Frame interval, s (the rate's integration).
-    deviation, rate : int
-        Index of the deviation (dq_p, dq_d) and of the torsion rate in the state; -1: none.
-    rate_noise : float
-        Process noise of the rate, rad^2/s^3.
-    max_variance : float
-        The delta_L variance cap, rad^2.
-
-    Returns
-    -------
-    ok : bool array (r,)
-        Finite, positive delta_L variance, and (n > 1) positive definite after the jitter.
-    L : array (r, n, n)
-        Lower Cholesky factors of the predicted (capped) covariances where ok.
-    """
-    r, n = x.shape
-    ok = np.zeros(r, dtype=np.bool_)
-    L = np.zeros((r, n, n))
-    work = np.empty((n, n))
-    for i in range(r):
-        ok[i] = _predict_row(
-            x[i], P[i], Q[i], decay[i], prior[i, 0], prior[i, 1], dt[i], deviation, rate,
-            rate_noise, max_variance, L[i], work,
-        )  # fmt: skip
-    return ok, L
-
-
 # ------------------------------------------------------------------------------ update
 @numba.njit(cache=True, nogil=True)
 def _sigma_offsets(L, spread, offsets):
@@ -181,19 +154,6 @@ def _sigma_factor(P, L, work):
         L[0, 0] = math.sqrt(max(a, _JITTER_FLOOR)) if ok else 1.0
         return ok
     return _cholesky_jittered(P, L, work)
-
-
-@numba.njit(cache=True, nogil=True)
-def sigma_factors(P, spread):
-    """Lower Cholesky factors of covariances (r, n, n) for the sigma points (with the
-    jitter's second attempt), and which factorised (r,)."""
-    r, n = P.shape[0], P.shape[1]
-    L = np.zeros((r, n, n))
-    ok = np.zeros(r, dtype=np.bool_)
-    work = np.empty((n, n))
-    for i in range(r):
-        ok[i] = _sigma_factor(P[i], L[i], work)
-    return L, ok
 
 
 @numba.njit(cache=True, nogil=True)
@@ -330,8 +290,12 @@ def innovation_stats(hs, z, offsets, noise, Wm, Wc, d):
 
 
 @numba.njit(cache=True, nogil=True)
-def _predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity, hs):
-    """One row's :meth:`FrameGroups.predict` into hs (S, G * 3)."""
+def predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity, hs):
+    """The 3-D measurement model at the sigma points (S, n) of one hypothesis, into hs
+    (S, G * 3): ``Rz(x_0 - about) (c + [J K] basis(dq))`` in the model frame at angle
+    ``about``, plus ``rate e_z x c_tip`` on the velocity group (the last, with
+    ``has_velocity``). c (G, 3), JK (G, 3, 5); ``deviation``, ``rate``: indices in the state
+    (-1: none)."""
     n_sigma = sigmas.shape[0]
     G = c.shape[0]
     basis = np.empty(5)
@@ -360,19 +324,6 @@ def _predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity, hs):
             hs[s, 3 * g] = cs * v0 - sn * v1
             hs[s, 3 * g + 1] = sn * v0 + cs * v1
             hs[s, 3 * g + 2] = v2
-
-
-@numba.njit(cache=True, nogil=True)
-def predict_3d(sigmas, c, JK, about, deviation, rate, has_velocity):
-    """The 3-D measurement model at sigma points (r, S, n) of r hypotheses, in the model
-    frame at angle ``about`` (r,): ``Rz(x_0 - about) (c + [J K] basis(dq))``, plus ``rate e_z
-    x c_tip`` on the velocity group, (r, S, G * 3). Arguments as :func:`innovation_3d`."""
-    r, n_sigma = sigmas.shape[0], sigmas.shape[1]
-    G = c.shape[1]
-    hs = np.empty((r, n_sigma, 3 * G))
-    for i in range(r):
-        _predict_3d(sigmas[i], c[i], JK[i], about[i], deviation, rate, has_velocity, hs[i])
-    return hs
 
 
 @numba.njit(cache=True, nogil=True)
@@ -438,7 +389,7 @@ def innovation_3d(
             for a in range(n):
                 sigmas[s, a] = x[i, a] + offsets[i, s, a]
         about = x[i, 0]
-        _predict_3d(sigmas, c[i], JK[i], about, deviation, rate, has_velocity, hs)
+        predict_3d(sigmas, c[i], JK[i], about, deviation, rate, has_velocity, hs)
         turn = -(q_r[i] + about)
         cs, sn = math.cos(turn), math.sin(turn)
         for g in range(G):
@@ -454,55 +405,18 @@ def innovation_3d(
 
 
 @numba.njit(cache=True, nogil=True)
-def fuse_rows(S, rho, Pxz, inlier, d, x, P):
-    """The update of r hypotheses with only their inlying groups.
+def fuse_row(S, rho, Pxz, inlier, d, x, P, products, x_post, P_post, Sm, A, solved, keep):
+    """The update of one hypothesis with only its inlying groups, into ``products``,
+    ``x_post`` and ``P_post``; returns ``(logdet, ok)``.
 
     The groups left out get zero rows and columns and unit variance (inert in the solve).
     With ``A = [Pxz; rho^T]`` and the gain ``K = Pxz S^-1``, the products ``A S^-1 A^T =
-    [[K Pxz^T, K rho], [., nis]]`` give the posterior ``x + K rho`` (delta_L wrapped) and
-    ``P - K S K^T`` (symmetrised).
-
-    Parameters
-    ----------
-    S : array (r, m, m), rho : array (r, m), Pxz : array (r, n, m)
-        From :func:`innovation_stats`.
-    inlier : bool array (r, G)
-    d : int
-        Dimension of a group.
-    x : array (r, n), P : array (r, n, n)
-        The priors.
-
-    Returns
-    -------
-    products : array (r, n + 1, n + 1)
-        ``A S^-1 A^T`` (zeros where S did not factorise); ``products[:, n, n]`` is the NIS.
-    logdet : array (r,)
-        log det of the masked S (NaN where it did not factorise).
-    ok : bool array (r,)
-    x_post : array (r, n), P_post : array (r, n, n)
+    [[K Pxz^T, K rho], [., nis]]`` (zeros where S does not factorise) give the posterior
+    ``x + K rho`` (delta_L wrapped) and ``P - K S K^T`` (symmetrised); logdet is that of the
+    masked S (NaN where it does not factorise). ``S`` (m, m), ``rho`` (m,), ``Pxz`` (n, m)
+    as :func:`innovation_stats` gives them, ``inlier`` (G,), groups of dimension ``d``;
+    ``Sm``, ``A``, ``solved``, ``keep``: scratch.
     """
-    r, m = rho.shape
-    n = Pxz.shape[1]
-    products = np.zeros((r, n + 1, n + 1))
-    logdet = np.full(r, np.nan)
-    ok = np.zeros(r, dtype=np.bool_)
-    x_post = np.empty((r, n))
-    P_post = np.empty((r, n, n))
-    Sm = np.empty((m, m))
-    A = np.empty((n + 1, m))
-    solved = np.empty((n + 1, m))
-    keep = np.empty(m, dtype=np.bool_)
-    for i in range(r):
-        logdet[i], ok[i] = _fuse_row(
-            S[i], rho[i], Pxz[i], inlier[i], d, x[i], P[i], products[i], x_post[i], P_post[i],
-            Sm, A, solved, keep,
-        )  # fmt: skip
-    return products, logdet, ok, x_post, P_post
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuse_row(S, rho, Pxz, inlier, d, x, P, products, x_post, P_post, Sm, A, solved, keep):
-    """One row of :func:`fuse_rows` into products, x_post, P_post; (logdet, ok)."""
     m = rho.shape[0]
     n = Pxz.shape[0]
     for j in range(m):
@@ -591,42 +505,32 @@ def warm_up() -> None:
     for n in (1, 3, 4):
         x = np.zeros((1, n))
         P = np.eye(n)[None].copy()
-        ok, L = predict_rows(
-            x, P, np.zeros(1), np.ones(1), np.ones((1, 2)), np.zeros(1), 1 if n > 2 else -1,
-            1 if n == 4 else -1, 0.0, 1.0,
-        )  # fmt: skip
-        cap_rows(P, 1.0)
-        L, ok = sigma_factors(P, 1.0)
         rows = np.zeros(1, dtype=np.intp)
-        row_factors(rows, rows, P[:, None], L[:, None], np.ones((1, 1), dtype=bool))
+        P, L, ok = row_factors(rows, rows, P[:, None], P[:, None], np.zeros((1, 1), bool))
         sigmas, offsets = sigma_rows(x, L, 1.0)
         W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
         G = 2
         c = np.ones((1, G, 3))
-        predict_3d(sigmas, c, np.zeros((1, G, 3, 5)), np.zeros(1), -1, -1, False)
         eye = np.broadcast_to(np.eye(3), (1, G, 3, 3)).copy()
-        S, rho, Pxz, d2, offsets = innovation_3d(
+        innovation_3d(
             x, L, 1.0, c, np.zeros((1, G, 3, 5)), c, np.zeros(1), eye, np.ones(1), eye, W, W,
             -1, -1, False,
         )  # fmt: skip
         for d in (2, 3):
             hs = np.zeros((1, 2 * n + 1, G * d))
             noise = np.broadcast_to(np.eye(d), (1, G, d, d)).copy()
-            S, rho, Pxz, d2 = innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
-            fuse_rows(S, rho, Pxz, np.ones((1, G), dtype=bool), d, x, P)
-            mixture_rows(np.ones(1), x, P, x, P)
+            innovation_stats(hs, np.zeros((1, G * d)), offsets, noise, W, W, d)
+        mixture_rows(np.ones(1), x, P, x, P)
 
 
 __all__ = [
-    "cap_rows",
-    "fuse_rows",
+    "fuse_row",
     "innovation_3d",
     "innovation_stats",
     "mixture_rows",
     "predict_3d",
-    "predict_rows",
+    "predict_row",
     "row_factors",
-    "sigma_factors",
     "sigma_rows",
     "warm_up",
 ]

@@ -40,9 +40,11 @@ from tracker.estimators.ukf_gate import (
     _REPAIRED,
     _UNINFORMATIVE,
     FLAG_ORDER,
+    commit_update,
     gate_and_fuse,
+    update_3d,
 )
-from tracker.estimators.ukf_kernels import _predict_row
+from tracker.estimators.ukf_kernels import predict_row
 
 
 # ------------------------------------------------------------------------------ a step
@@ -133,7 +135,7 @@ def begin_step(
         decay = math.exp(-abs(moved) / deviation_length - deviation_rate * dt[t])
         for h in range(H):
             if active[t, h]:
-                ok[t, h] = _predict_row(
+                ok[t, h] = predict_row(
                     x[t, h], P[t, h], Q[t], decay, prior[t, 0], prior[t, 1], dt[t], deviation,
                     rate, rate_noise, max_variance, L[t, h], work,
                 )  # fmt: skip
@@ -429,8 +431,10 @@ def finish_update(
 
 @functools.cache
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on tiny inputs of the filters' types
-    (the flag values and the gate tables are shared read-only arrays, a type of their own)."""
+    """Compile (or load from the cache) every kernel of this module and of
+    :mod:`tracker.estimators.ukf_gate` on tiny inputs of the types a run passes (the flag
+    values, the gate tables and a bank of one's indices are shared read-only arrays, a type
+    of their own), once per process."""
 
     def shared(a):
         a.flags.writeable = False
@@ -483,6 +487,20 @@ def warm_up() -> None:
             )  # fmt: skip
             apply_update(*args)
             finish_update(*args, x, P, running, prior, 1 if n > 2 else -1)
+            # The update's rules (ukf_gate) with the same argument types.
+            commit_update(rows, rows, out[8], out[0], out[1], out[4], x, P, x.copy(), P.copy(),
+                          lw, np.ones(B), 0.99)  # fmt: skip
+            W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
+            for has_velocity in (True, False):
+                c = np.ones((B, G, 3))
+                eye = np.broadcast_to(np.eye(3), (B, G, 3, 3)).copy()
+                update_3d(
+                    rows, rows, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, c,
+                    np.zeros((B, G, 3, 5)), c, np.zeros((B, 3)), eye, np.ones(B), eye,
+                    np.ones((B, G), dtype=bool), has_velocity, W, W, 1 if n > 2 else -1,
+                    1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)),
+                    1.0, flag,
+                )  # fmt: skip
         normalise_single(active, lw)
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
