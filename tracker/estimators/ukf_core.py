@@ -60,7 +60,7 @@ from functools import lru_cache
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from tracker.estimators import measurement_kernels, ukf_gate, ukf_kernels, ukf_rules
+from tracker.estimators import measurement_kernels, ukf_gate, ukf_kernels, ukf_rules, ukf_step
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
@@ -171,9 +171,11 @@ class FilterBank:
         # The kernels' indices (-1: not in the state).
         self._rate_index = -1 if self.rate is None else self.rate
         self._deviation_index = -1 if self.deviation is None else self.deviation
+        self._rules: dict[tuple[int, int], tuple] = {}
         measurement_kernels.warm_up()
         ukf_kernels.warm_up()
         ukf_rules.warm_up()
+        ukf_step.warm_up()
         self.reset(n_trials)
 
     # ------------------------------------------------------------------ state
@@ -292,16 +294,32 @@ class FilterBank:
         terms = None
         if measured_frame and isinstance(frame, FrameGroups):
             frame = offered_velocity(frame, s, self.tip_fused)
-            # A 3-D frame: the predict and the frame's terms of the update in one call.
+            # A 3-D frame: the predict, the frame's terms and, in the usual case, the update
+            # and the report in one call (ukf_step).
             c = np.ascontiguousarray
-            flags, dt, turn, Q, prior, self._factor_ok, self._factor, *terms = (
-                ukf_rules.begin_frame_3d(
+            G = frame.present.shape[1]
+            nis, nis_dof = np.full(B, np.nan), np.zeros(B, dtype=np.int64)
+            low, high = s.noise_scale_bounds
+            scale = self.noise_scale * self.mismatch_scale
+            stage, flags, dt, turn, Q, prior, self._factor_ok, self._factor, *rest = (
+                ukf_step.step_3d(
                     *process, c(frame.R_bar), c(frame.present), self.reacquire_variance,
                     c(frame.c), frame.n_positions, c(frame.JK), frame.has_velocity_group,
                     c(frame.u_norm_mm_s, dtype=float), s.joint_error_white_mm,
-                    s.velocity_relative_error,
+                    s.velocity_relative_error, self._first_only, self._every, self._slot_0,
+                    self.log_weight, self.mismatch_scale, MISMATCH_DECAY, scale, self.spread,
+                    c(frame.y), c(frame.q), self.Wm, self.Wc, *self._update_rules(G, 3)[:-1],
+                    self.rejected, self.bad_run, fused_tip, nis, nis_dof, self.noise_scale,
+                    s.estimate_noise, _gate_table(s.gate_probability, 3 * G),
+                    s.noise_forgetting, low, high, self.initialised,
                 )
             )  # fmt: skip
+            terms = rest[:6]
+            if stage == ukf_step.FINISHED_UPDATE:
+                return self._finish_fused(
+                    frame, rest[6:], flags, dt, turn, prior, fused_tip, nis, nis_dof, scale,
+                    terms,
+                )  # fmt: skip
         else:
             flags, dt, turn, Q, prior, self._factor_ok, self._factor = ukf_rules.begin_step(
                 *process
@@ -328,6 +346,61 @@ class FilterBank:
         out.delta_L_rad, out.std_rad = reported
         out.rejected = self.rejected.copy()
         return out
+
+    def _finish_fused(self, frame, results, flags, dt, turn, prior, fused_tip, nis, nis_dof,
+                      scale, terms) -> StepResult:  # fmt: skip
+        """The rest of a step that :func:`~tracker.estimators.ukf_step.step_3d` updated: the
+        innovation shown, and what stays in Python when a trial needs it (the closed form,
+        several hypotheses)."""
+        # update_3d's (status, nis, dof, rejected) are already in the bank and in the flags.
+        (_, _, _, _, inlier, shown, rho, spawn, first, row, closed_form, first_only, single,
+         finished, mean, std) = results  # fmt: skip
+        B = self.B
+        out = StepResult(
+            delta_L_rad=None, std_rad=None, flags=flags, nis=nis, nis_dof=nis_dof,
+            rejected=None, radius_mm=terms[4], innovation=[None] * B,
+        )  # fmt: skip
+        if B == 1 and row[0] >= 0:
+            i = row[0]
+            if shown[i]:
+                G = frame.present.shape[1]
+                out.innovation[0] = rho[i].reshape(G, 3)[inlier[i]].ravel()
+        self.tip_fused = fused_tip
+        if finished:
+            self._first_only, self._single = first_only, single
+        else:
+            if closed_form:
+                jump = jump_probability(self.settings.jump_rate_per_s, self.settings.jump_per_rad,
+                                        dt, turn)  # fmt: skip
+                self._closed_form(frame, terms[5], scale, first, terms[2], spawn, jump, flags,
+                                  fused_tip)  # fmt: skip
+            self._normalise()
+            mean, std = ukf_rules.report(
+                self.x, self.P, self.active, self.log_weight, self.initialised, prior,
+                self._deviation_index, flags, _FLAGS,
+            )  # fmt: skip
+        out.delta_L_rad, out.std_rad = mean, std
+        out.rejected = self.rejected.copy()
+        return out
+
+    def _update_rules(self, G: int, d: int) -> tuple:
+        """The update's rules for G groups of dimension d: outlier probability and scale,
+        the outlier and doubt thresholds, the joint gates, the least information of an
+        update and the flag values (cached per bank)."""
+        key = (G, d)
+        rules = self._rules.get(key)
+        if rules is None:
+            s = self.settings
+            p, k = s.outlier_probability, s.outlier_scale
+            threshold = outlier_threshold(d, p, k)
+            if math.isfinite(threshold) and G > 1:
+                gates = joint_gates(s.gate_probability, d, G)
+            else:
+                gates = _no_gates(G)
+            rules = self._rules[key] = (
+                p, k, threshold, doubt_threshold(d, p, k), gates, self.min_information, _FLAGS
+            )
+        return rules
 
     def _marked(self, mask: Array) -> tuple[Array, Array, Array | slice]:
         """The hypotheses marked in ``mask`` (B, H) as indices (b, h), and the trial rows to
@@ -542,17 +615,10 @@ class FilterBank:
         one update (gain ``Pxz S^-1``, ``P - K S K^T``), the others padded with zero rows and
         unit noise.
         """
-        s = self.settings
         b, h, rows = marked
         r = b.size
         G, d = frame.present.shape[1], frame.dim
-        p, k = s.outlier_probability, s.outlier_scale
-        threshold = outlier_threshold(d, p, k)
-        if math.isfinite(threshold) and G > 1:
-            gates = joint_gates(s.gate_probability, d, G)
-        else:
-            gates = _no_gates(G)
-        rules = (p, k, threshold, doubt_threshold(d, p, k), gates, self.min_information, _FLAGS)
+        rules = self._update_rules(G, d)
         if isinstance(frame, FrameGroups):
             c = np.ascontiguousarray
             status, nis, dof, rejected, inlier, shown, rho = ukf_gate.update_3d(
