@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tracker.estimators import check_kernels as kernels
 from tracker.io.limits import (
     JOINT_RATE_LIMITS,
     JOINT_VALUE_LIMITS,
@@ -54,43 +55,16 @@ MAX_TIME_STEP_S = 3600.0
 CLOCK_RESTART_FRAMES = 5
 """Skipped observations in a row, consistent among themselves, that make a restarted clock."""
 SKIPPED = Flag.INVALID_INPUT | Flag.HELD | Flag.NO_MEASUREMENT
-_JOINT_VALUE_LIMITS = tuple(float(x) for x in JOINT_VALUE_LIMITS)
-_JOINT_RATE_LIMITS = tuple(float(x) for x in JOINT_RATE_LIMITS)
-
-
-def _symmetric_in_range(cov: Array, low: float, high: float) -> bool:
-    """Symmetric, ``cov - low I`` positive definite (Sylvester's criterion for 2x2 and 3x3, in
-    plain floats: this runs on every step) and every variance at most ``high``."""
-    if cov is None:
-        return False
-    try:
-        c = np.asarray(cov, dtype=float)
-    except (TypeError, ValueError):
-        return False
-    if c.shape == (3, 3):
-        return _symmetric_in_range_3(c.tolist(), low, high)
-    if c.shape == (2, 2):
-        return _symmetric_in_range_2(c.tolist(), low, high)
-    return False
-
-
-def _symmetric_in_range_3(rows: list, low: float, high: float) -> bool:
-    """:func:`_symmetric_in_range` of a 3x3 matrix given as nested Python floats."""
-    (a, b, c, d, e, f, g, h, i) = rows[0] + rows[1] + rows[2]
-    if not math.isfinite(a + b + c + d + e + f + g + h + i):  # a NaN or an infinity
-        return False
-    tol = 1e-9 * max(abs(a), abs(e), abs(i), 1e-300)
-    if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol or max(a, e, i) > high:
-        return False
-    a, e, i = a - low, e - low, i - low
-    minor = a * e - b * b
-    return a > 0.0 and minor > 0.0 and a * (e * i - f * f) - b * (b * i - f * c) + c * (
-        b * f - e * c
-    ) > 0.0
+# The limits as the compiled checks take them (read-only: a type of their own).
+_JOINT_VALUE_LIMITS = np.array(JOINT_VALUE_LIMITS, dtype=float)
+_JOINT_RATE_LIMITS = np.array(JOINT_RATE_LIMITS, dtype=float)
+for _limits in (_JOINT_VALUE_LIMITS, _JOINT_RATE_LIMITS):
+    _limits.flags.writeable = False
 
 
 def _symmetric_in_range_2(rows: list, low: float, high: float) -> bool:
-    """:func:`_symmetric_in_range` of a 2x2 matrix given as nested Python floats."""
+    """A 2x2 matrix given as nested Python floats: symmetric, ``A - low I`` positive definite
+    and every variance at most ``high``."""
     (a, b), (d, e) = rows
     if not math.isfinite(a + b + d + e):
         return False
@@ -110,94 +84,135 @@ def _positive_definite(a: Array) -> bool:
     return True
 
 
-def _points(points: Array | None, shape: tuple[int, ...], limit: float) -> list[bool] | None:
-    """Which rows of points are present (finite), or None when the array is unusable: wrong
-    shape, a row partly NaN, an infinity, or a coordinate beyond ``limit``. Plain floats: this
-    runs on every step."""
-    points = np.asarray(points, dtype=float)
-    if points.shape != shape:
+def _matrix(value) -> Array | None:
+    """A 3x3 covariance as floats, or None (not given, not numbers, another shape)."""
+    if value is None:
         return None
-    rows = points.tolist()
-    present = []
-    for row in rows if points.ndim == 2 else (rows,):
-        if math.isfinite(sum(row)):
-            if max(map(abs, row)) > limit:
-                return None
-            present.append(True)
-        elif all(map(math.isnan, row)):
-            present.append(False)
-        else:  # partly missing, or an infinity
-            return None
-    return present
+    try:
+        matrix = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return matrix if matrix.shape == (3, 3) else None
 
 
-def _within(values, limits) -> bool:
-    """Finite values, each within its limit."""
-    for x, limit in zip(values, limits, strict=True):
-        if not (math.isfinite(x) and abs(x) <= limit):
-            return False
-    return True
+_PROBLEMS = {
+    kernels.BAD_JOINTS: "joint values missing, not finite or beyond the robot's ranges",
+    kernels.BAD_RATES: "joint rates not finite or beyond the robot's ranges",
+    kernels.BAD_TIP: "tip not finite or beyond the catheter's reach",
+    kernels.BAD_TIP_COV: "tip covariance not positive definite or out of range",
+    kernels.BAD_MARKERS: "markers not {n} finite points within the catheter's reach",
+    kernels.BAD_MARKERS_COV: "marker covariance not positive definite or out of range",
+    kernels.BAD_VELOCITY: "velocity or its covariance unusable",
+    kernels.BAD_CROSS: "velocity-tip cross-covariance not finite",
+}
 
 
-def observation_problem(observation: Observation, n_markers: int) -> str | None:
-    """Why ``observation`` cannot be used (one phrase), or None when it can (times aside)."""
-    o = observation
+def _fill(o: Observation, n_markers: int, v: Array) -> tuple[int, int, str | None, Array | None]:
+    """Copy the 3-D data of ``o`` into the kernel's buffer ``v``.
+
+    Returns the mask of the parts given, the first problem found on the way (a wrong shape;
+    nothing after it is copied: the kernel checks what comes before it), its message when
+    it has its own, and a joint marker covariance left to the caller.
+    """
+    n = n_markers
+    has = 0
     q = np.asarray(o.q, dtype=float)
-    if q.shape != (3,) or not _within(q.tolist(), _JOINT_VALUE_LIMITS):
-        return "joint values missing, not finite or beyond the robot's ranges"
+    if q.shape != (3,):
+        return has, kernels.BAD_JOINTS, None, None
+    v[0:3] = q
     if o.q_dot is not None:
         q_dot = np.asarray(o.q_dot, dtype=float)
-        if q_dot.shape != (3,) or not _within(q_dot.tolist(), _JOINT_RATE_LIMITS):
-            return "joint rates not finite or beyond the robot's ranges"
+        if q_dot.shape != (3,):
+            return has, kernels.BAD_RATES, None, None
+        v[3:6] = q_dot
+        has |= kernels.HAS_Q_DOT
     if o.tip_b_mm is not None:
-        present = _points(o.tip_b_mm, (3,), MAX_POINT_MM)
-        if present is None:
-            return "tip not finite or beyond the catheter's reach"
-        if present[0] and not _symmetric_in_range(
-            o.tip_cov_b,
-            MIN_VARIANCE_MM2,
-            MAX_VARIANCE_MM2,
-        ):
-            return "tip covariance not positive definite or out of range"
+        tip = np.asarray(o.tip_b_mm, dtype=float)
+        if tip.shape != (3,):
+            return has, kernels.BAD_TIP, None, None
+        v[6:9] = tip
+        has |= kernels.HAS_TIP
+        cov = _matrix(o.tip_cov_b)
+        if cov is not None:
+            v[9:18] = cov.ravel()
+            has |= kernels.HAS_TIP_COV
+    markers, covs, velocity = 18, 18 + 3 * n, 18 + 12 * n
+    joint = None
     if o.markers_b_mm is not None:
-        present = _points(o.markers_b_mm, (n_markers, 3), MAX_POINT_MM)
-        if present is None:
-            return f"markers not {n_markers} finite points within the catheter's reach"
-        if any(present):
-            cov = np.asarray(o.markers_cov_b if o.markers_cov_b is not None else np.nan, float)
-            if cov.shape == (n_markers, 3, 3):
-                ok = all(
-                    _symmetric_in_range_3(block, MIN_VARIANCE_MM2, MAX_VARIANCE_MM2)
-                    for block, found in zip(cov.tolist(), present, strict=True)
-                    if found
-                )
-            elif cov.shape == (3 * n_markers, 3 * n_markers):
-                rows = np.repeat(present, 3)
+        points = np.asarray(o.markers_b_mm, dtype=float)
+        if points.shape != (n, 3):
+            return has, kernels.BAD_MARKERS, None, None
+        v[markers:covs] = points.ravel()
+        has |= kernels.HAS_MARKERS
+        cov = np.asarray(o.markers_cov_b if o.markers_cov_b is not None else np.nan, float)
+        if cov.shape == (n, 3, 3):
+            v[covs:velocity] = cov.ravel()  # the blocks of the markers found are checked
+            has |= kernels.HAS_MARKERS_COV
+        elif (found := np.isfinite(points).all(axis=1)).any():
+            if cov.shape == (3 * n, 3 * n):
+                rows = np.repeat(found, 3)
                 joint = cov[np.ix_(rows, rows)]
-                if joint.shape[-1] == 3:  # one marker: its block
-                    ok = _symmetric_in_range_3(joint.tolist(), MIN_VARIANCE_MM2, MAX_VARIANCE_MM2)
-                else:  # the joint covariance of several markers
-                    ok = np.all(np.diag(joint) <= MAX_VARIANCE_MM2) and _positive_definite(
-                        joint - MIN_VARIANCE_MM2 * np.eye(joint.shape[-1])
-                    )
+                if joint.shape[-1] == 3:  # one marker found: its block, checked as one
+                    k = covs + 9 * int(np.flatnonzero(found)[0])
+                    v[k : k + 9] = joint.ravel()
+                    has |= kernels.HAS_MARKERS_COV
+                    joint = None
+                else:
+                    has |= kernels.JOINT_MARKERS_COV
             else:
-                return f"marker covariance of shape {cov.shape}"
-            if not ok:
-                return "marker covariance not positive definite or out of range"
+                return has, kernels.BAD_MARKERS_COV, f"marker covariance of shape {cov.shape}", None
     if o.velocity_b_mm_s is not None:
-        present = _points(o.velocity_b_mm_s, (3,), MAX_SPEED_MM_S)
-        if present is None or (
-            present[0]
-            and not _symmetric_in_range(
-                o.velocity_cov_b,
-                MIN_VARIANCE_MM2,
-                MAX_VARIANCE_MM2,
-            )
-        ):
-            return "velocity or its covariance unusable"
+        speed = np.asarray(o.velocity_b_mm_s, dtype=float)
+        if speed.shape != (3,):
+            return has, kernels.BAD_VELOCITY, None, joint
+        v[velocity : velocity + 3] = speed
+        has |= kernels.HAS_VELOCITY
+        cov = _matrix(o.velocity_cov_b)
+        if cov is not None:
+            v[velocity + 3 : velocity + 12] = cov.ravel()
+            has |= kernels.HAS_VELOCITY_COV
         cross = o.velocity_tip_cov_b
-        if cross is not None and not all(map(math.isfinite, np.asarray(cross).ravel().tolist())):
-            return "velocity-tip cross-covariance not finite"
+        if cross is not None:
+            cross = np.asarray(cross, dtype=float)
+            if cross.shape == (3, 3):
+                v[velocity + 12 : velocity + 21] = cross.ravel()
+                has |= kernels.HAS_CROSS
+            elif not np.isfinite(cross).all():
+                return has, kernels.BAD_CROSS, None, joint
+    return has, kernels.OK, None, joint
+
+
+def observation_problem(
+    observation: Observation, n_markers: int, buffer: Array | None = None
+) -> str | None:
+    """Why ``observation`` cannot be used (one phrase), or None when it can (times aside).
+
+    The 3-D data are checked by one compiled call (:mod:`tracker.estimators.check_kernels`),
+    a joint marker covariance and single-view points here. ``buffer``: the kernel's buffer
+    (``check_kernels.buffer_size(n_markers)`` floats) to reuse, if the caller keeps one.
+    """
+    o = observation
+    if buffer is None:
+        buffer = np.empty(kernels.buffer_size(n_markers))
+    has, stop, message, joint = _fill(o, n_markers, buffer)
+    code = kernels.check_buffer(
+        buffer, n_markers, has, _JOINT_VALUE_LIMITS, _JOINT_RATE_LIMITS, MAX_POINT_MM,
+        MAX_SPEED_MM_S, MIN_VARIANCE_MM2, MAX_VARIANCE_MM2,
+    )  # fmt: skip
+    if code == kernels.OK or code > kernels.BAD_MARKERS_COV:
+        # The joint covariance of several markers comes in the order of the markers' checks.
+        if joint is not None and not (
+            np.all(np.diag(joint) <= MAX_VARIANCE_MM2)
+            and _positive_definite(joint - MIN_VARIANCE_MM2 * np.eye(joint.shape[-1]))
+        ):
+            code = kernels.BAD_MARKERS_COV
+    if stop != kernels.OK and (code == kernels.OK or code >= stop):
+        # What the kernel found at or after the part that stopped the copy is that part's.
+        if message is not None:
+            return message
+        code = stop
+    if code != kernels.OK:
+        return _PROBLEMS[code].format(n=n_markers)
     for view in o.views:
         uv = np.asarray(view.uv, dtype=float)
         cov = np.asarray(view.cov, dtype=float)
@@ -229,6 +244,8 @@ class CheckedEstimator:
     check_time: bool = True
 
     def __post_init__(self) -> None:
+        kernels.warm_up()
+        self._buffer = np.empty(kernels.buffer_size(self.n_markers))
         self.skipped: dict[str, int] = {}
         self._reset_state()
 
@@ -284,7 +301,7 @@ class CheckedEstimator:
         t = float(observation.time_s)
         if not math.isfinite(t):
             return self._skip(observation, "time not finite")
-        problem = observation_problem(observation, self.n_markers)
+        problem = observation_problem(observation, self.n_markers, self._buffer)
         if problem is not None:
             return self._skip(observation, problem)
         if not self.check_time:  # a per-frame estimator: nothing carried from step to step

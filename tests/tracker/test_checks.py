@@ -1,0 +1,97 @@
+"""The input checks every estimator's observations go through (tracker.estimators.checks),
+rule by rule: the phrase each bad input gets, the order in which the rules run, and that any
+layout or dtype of the arrays is checked by the compiled kernel without compiling again."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tracker.estimators import check_kernels
+from tracker.estimators.checks import observation_problem
+from tracker.types import Observation
+
+I3 = np.eye(3)
+GOOD = Observation(
+    time_s=1.0, q=np.array([0.1, 0.5, 0.2]), q_dot=np.array([0.2, 0.0, 0.1]),
+    tip_b_mm=np.array([1.0, 2.0, 30.0]), tip_cov_b=0.01 * I3,
+    markers_b_mm=np.array([[1.0, 2.0, 20.0], [0.0, 1.0, 10.0]]),
+    markers_cov_b=np.stack([0.01 * I3] * 2), velocity_b_mm_s=np.array([1.0, 0.0, 0.0]),
+    velocity_cov_b=4.0 * I3, velocity_tip_cov_b=0.1 * I3,
+)  # fmt: skip
+JOINTS = "joint values missing, not finite or beyond the robot's ranges"
+RATES = "joint rates not finite or beyond the robot's ranges"
+TIP = "tip not finite or beyond the catheter's reach"
+TIP_COV = "tip covariance not positive definite or out of range"
+MARKERS = "markers not 2 finite points within the catheter's reach"
+MARKERS_COV = "marker covariance not positive definite or out of range"
+VELOCITY = "velocity or its covariance unusable"
+CROSS = "velocity-tip cross-covariance not finite"
+NAN3 = np.full(3, np.nan)
+SKEW = I3 + np.triu(np.ones((3, 3)), 1)
+JOINT = 0.01 * np.eye(6)
+JOINT[0, 3] = JOINT[3, 0] = 0.02  # the two markers' blocks fine, the joint matrix not
+
+CASES = [
+    ("good", {}, None),
+    ("lists of ints", dict(q=[0, 1, 2], tip_b_mm=[1, 2, 30], tip_cov_b=np.eye(3, dtype=int).tolist()), None),
+    ("read-only, strided", dict(tip_b_mm=np.repeat([1.0, 2.0, 30.0], 2)[::2],
+                                tip_cov_b=np.asfortranarray(0.01 * I3)), None),
+    ("no tip found", dict(tip_b_mm=NAN3, tip_cov_b=None), None),
+    ("q NaN", dict(q=np.array([np.nan, 0.5, 0.2])), JOINTS),
+    ("q beyond range", dict(q=np.array([0.0, 1e3, 0.2])), JOINTS),
+    ("q of 2", dict(q=np.zeros(2)), JOINTS),
+    ("q_dot inf", dict(q_dot=np.array([0.0, np.inf, 0.0])), RATES),
+    ("q_dot of 4", dict(q_dot=np.zeros(4)), RATES),
+    ("tip partly NaN", dict(tip_b_mm=np.array([1.0, np.nan, 2.0])), TIP),
+    ("tip 1e10", dict(tip_b_mm=np.full(3, 1e10)), TIP),
+    ("tip of 2", dict(tip_b_mm=np.zeros(2)), TIP),
+    ("tip cov missing", dict(tip_cov_b=None), TIP_COV),
+    ("tip cov skew", dict(tip_cov_b=SKEW), TIP_COV),
+    ("tip cov tiny", dict(tip_cov_b=1e-30 * I3), TIP_COV),
+    ("tip cov huge", dict(tip_cov_b=1e300 * I3), TIP_COV),
+    ("tip cov text", dict(tip_cov_b="identity"), TIP_COV),
+    ("markers of 3", dict(markers_b_mm=np.zeros((3, 3))), MARKERS),
+    ("marker partly NaN", dict(markers_b_mm=np.array([[1.0, 2.0, 20.0], [np.nan, 1.0, 1.0]])), MARKERS),
+    ("marker cov zero", dict(markers_cov_b=np.zeros((2, 3, 3))), MARKERS_COV),
+    ("marker cov of a lost marker ignored",
+     dict(markers_b_mm=np.array([[1.0, 2.0, 20.0], NAN3]),
+          markers_cov_b=np.stack([0.01 * I3, np.zeros((3, 3))])), None),
+    ("marker cov shape", dict(markers_cov_b=np.zeros((4, 4))), "marker covariance of shape (4, 4)"),
+    ("joint marker cov", dict(markers_cov_b=0.01 * np.eye(6)), None),
+    ("joint marker cov not positive", dict(markers_cov_b=JOINT), MARKERS_COV),
+    ("joint, one marker found: its block",
+     dict(markers_b_mm=np.array([NAN3, [0.0, 1.0, 10.0]]), markers_cov_b=JOINT), None),
+    ("joint, one marker found, bad block",
+     dict(markers_b_mm=np.array([NAN3, [0.0, 1.0, 10.0]]), markers_cov_b=np.zeros((6, 6))),
+     MARKERS_COV),
+    ("velocity 1e300", dict(velocity_b_mm_s=np.full(3, 1e300)), VELOCITY),
+    ("velocity cov zero", dict(velocity_cov_b=np.zeros((3, 3))), VELOCITY),
+    ("velocity of 2", dict(velocity_b_mm_s=np.zeros(2)), VELOCITY),
+    ("cross inf", dict(velocity_tip_cov_b=np.full((3, 3), np.inf)), CROSS),
+    ("cross of another shape, NaN", dict(velocity_tip_cov_b=np.full((2, 2), np.nan)), CROSS),
+    # The rules run in order: the first broken one is named.
+    ("q and tip", dict(q=np.array([np.nan, 0.0, 0.0]), tip_b_mm=np.zeros(2)), JOINTS),
+    ("tip cov and markers", dict(tip_cov_b=SKEW, markers_b_mm=np.zeros((3, 3))), TIP_COV),
+    ("markers and velocity", dict(markers_cov_b=np.zeros((2, 3, 3)), velocity_b_mm_s=np.zeros(2)),
+     MARKERS_COV),
+    ("joint markers and velocity", dict(markers_cov_b=JOINT, velocity_cov_b=np.zeros((3, 3))),
+     MARKERS_COV),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("name", "change", "problem"), CASES, ids=[c[0] for c in CASES])
+def test_each_rule_names_its_problem(name, change, problem):
+    observation = dataclasses.replace(GOOD, **change)
+    for value in change.values():
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False  # recorded arrays are often read-only
+    assert observation_problem(observation, 2) == problem
+
+
+def test_any_input_is_checked_without_compiling_again():
+    for name, change, _ in CASES:
+        observation_problem(dataclasses.replace(GOOD, **change), 2)
+    assert len(check_kernels.check_buffer.signatures) == 1
