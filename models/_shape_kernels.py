@@ -70,6 +70,26 @@ def points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2):
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def points_at_powers(
+    q_p, q_d, size_p, size_d, G, W, column_1, column_2, cos_delta_2, sin_delta_2
+):  # fmt: skip
+    """:func:`points_from_basis` of k configurations (q_p, q_d) (arrays (k,), mm) whose
+    joint bases are power bases of ``size_p`` and ``size_d`` terms: the rows ``[1, q, q^2,
+    ...]`` made here by the same running products as the model's own (so the same numbers).
+    """
+    k = q_p.shape[0]
+    eta = np.empty((k, size_p + size_d))
+    for r in range(k):
+        eta[r, 0] = 1.0
+        for j in range(1, size_p):
+            eta[r, j] = eta[r, j - 1] * q_p[r]
+        eta[r, size_p] = 1.0
+        for j in range(size_p + 1, size_p + size_d):
+            eta[r, j] = eta[r, j - 1] * q_d[r]
+    return points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2)
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel once per process."""
@@ -79,6 +99,7 @@ def warm_up() -> None:
     for matrix in (G, W):
         matrix.flags.writeable = False
     points_from_basis(np.zeros((1, 2)), G, W, columns, columns, 1.0, 0.0)
+    points_at_powers(np.zeros(1), np.zeros(1), 1, 1, G, W, columns, columns, 1.0, 0.0)
 
 
-__all__ = ["points_from_basis", "warm_up"]
+__all__ = ["points_at_powers", "points_from_basis", "warm_up"]

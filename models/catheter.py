@@ -21,7 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
-from models._shape_kernels import points_from_basis
+from models._shape_kernels import points_at_powers, points_from_basis
 from models.modal import Basis, ModalSegment, PowerBasis, SegmentQuadrature
 from models.rotations import rot_y, rot_z, rotate_z, skew
 
@@ -449,6 +449,30 @@ class Catheter:
         eta_p, eta_d = self.proximal.eta.values(q[:, 1]), self.distal.eta.values(q[:, 2])
         eta = np.concatenate([eta_p, eta_d], -1)
         return self._points_from_rows(np.ascontiguousarray(eta))
+
+    def points_at(self, q_p: Array, q_d: Array) -> Array:
+        """:meth:`points` of k configurations given as their bending joints q_p, q_d (arrays
+        (k,) of finite floats, mm; the points do not depend on q_r): (k, 1 + n_markers, 3),
+        mm. One compiled call when both joint bases are power bases (the default model's),
+        the filters' case every frame."""
+        if self._power_sizes is None:
+            q = np.column_stack([np.zeros(len(q_p)), q_p, q_d])
+            return self.points_of(q)
+        plan = self._marker_plan
+        column_1, column_2 = plan.tip_first_columns
+        cd2, sd2 = self._delta_2_cos_sin
+        return points_at_powers(
+            q_p, q_d, *self._power_sizes, plan.G_single, plan.weights_single, column_1,
+            column_2, cd2, sd2,
+        )  # fmt: skip
+
+    @cached_property
+    def _power_sizes(self) -> tuple[int, int] | None:
+        """The sizes of the joint bases when both are power bases, else None."""
+        bases = (self.proximal.eta, self.distal.eta)
+        if all(type(basis) is PowerBasis for basis in bases):
+            return bases[0].size, bases[1].size
+        return None
 
     def _points_single(self, joints: list[list[float]]) -> Array:
         """The tip's and the markers' points (tip first) of configurations given as float

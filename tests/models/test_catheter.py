@@ -592,3 +592,22 @@ def test_points_of_a_few_configurations_are_the_single_configuration_points():
     np.testing.assert_allclose(catheter.points_of(q), catheter.points(q), rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="shape"):
         catheter.points_of(q[0])
+
+
+class _OtherPowers(PowerBasis):
+    """The power basis under another type: the model's general path, not the compiled one."""
+
+
+def test_points_at_bending_joints_are_the_points_of_the_configurations():
+    catheter = default_catheter(0.4)
+    q = np.random.default_rng(6).uniform(-1.2, 1.2, (7, 3))
+    # Power bases (the default model): one compiled call, the same numbers to the bit.
+    np.testing.assert_array_equal(catheter.points_at(q[:, 1].copy(), q[:, 2].copy()),
+                                  catheter.points_of(q))  # fmt: skip
+    other = dataclasses.replace(
+        catheter, proximal=dataclasses.replace(catheter.proximal, eta=_OtherPowers(
+            catheter.proximal.eta.size)),
+    )  # fmt: skip
+    assert other._power_sizes is None
+    np.testing.assert_allclose(other.points_at(q[:, 1], q[:, 2]), catheter.points_of(q),
+                               rtol=0, atol=1e-12)  # fmt: skip

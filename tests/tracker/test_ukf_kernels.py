@@ -424,6 +424,15 @@ def test_a_frame_s_position_groups_are_assembled_with_their_presence_and_invaria
                 np.testing.assert_allclose(R_bar[t, g], expected, rtol=1e-15)
 
 
+def test_the_expansion_carried_from_its_node_is_the_product_with_the_transport_matrix():
+    rng = np.random.default_rng(9)
+    JK = rng.normal(size=(4, 3, 5))
+    p, d = 0.007, -0.004
+    T = np.eye(5)
+    T[2, 0], T[3, 0], T[3, 1], T[4, 1] = 2 * p, d, p, 2 * d
+    np.testing.assert_allclose(MK.carry_expansion(JK, p, d)[0], JK @ T, rtol=1e-14, atol=1e-15)
+
+
 _NO_COMPILE_SCRIPT = """
 import importlib, math, numba, numpy as np
 from models.catheter import default_catheter
@@ -431,8 +440,9 @@ from tracker.estimators import make_estimator
 from tracker.types import Observation
 
 modules = [importlib.import_module(f"tracker.estimators.{name}") for name in (
-    "ukf_kernels", "ukf_rules", "ukf_gate", "measurement_kernels", "linalg_kernels",
-    "grid_kernels")] + [importlib.import_module("models._shape_kernels")]
+    "ukf_kernels", "ukf_rules", "ukf_gate", "ukf_step", "measurement_kernels",
+    "linalg_kernels", "grid_kernels", "check_kernels")] + [
+    importlib.import_module("models._shape_kernels")]
 
 def signatures():
     return {(m.__name__, name): len(k.signatures) for m in modules
@@ -456,6 +466,10 @@ for k in range(40):
         time_s=0.05 * k, q=q, q_dot=np.array([0.2, 0.0, 0.4]), tip_b_mm=measured[0],
         tip_cov_b=cov, markers_b_mm=measured[1:],
         markers_cov_b=np.broadcast_to(cov, (n_markers, 3, 3)).copy())
+    if k % 5 == 1:  # recorded arrays are often read-only
+        for value in vars(observation).values():
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
     for estimator in estimators:
         estimator.step(observation)
 after = signatures()

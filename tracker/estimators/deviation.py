@@ -15,6 +15,7 @@ import numpy as np
 
 from models import _shape_kernels as shape_kernels
 from models.catheter import Catheter
+from tracker.estimators import measurement_kernels
 
 Array = np.ndarray
 
@@ -46,9 +47,7 @@ _WEIGHTS = _difference_weights(DEVIATION_STEP_MM)
 def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array]:
     """c (P, 3) and ``[J K]`` (P, 3, 5) at q by central differences (six shape evaluations,
     through the single-configuration path: fewer numpy calls than the batched one)."""
-    joints = np.repeat(q[None], 6, axis=0)
-    joints[:, 1:] += _STEPS
-    points = catheter.points_of(joints)
+    points = catheter.points_at(q[1] + _STEPS[:, 0], q[2] + _STEPS[:, 1])
     JK = (points.reshape(6, -1).T @ _WEIGHTS).reshape(points.shape[1:] + (5,))
     return points[0], JK
 
@@ -79,6 +78,7 @@ class ShapeExpansion:
         self.catheter = catheter
         # The model's points are compiled: loaded (or compiled) now, not at the first frame.
         shape_kernels.warm_up()
+        measurement_kernels.warm_up()
         self._nodes: dict[tuple[int, int], tuple[Array, Array]] = {}
 
     def _node(self, key: tuple[int, int]) -> tuple[Array, Array]:
@@ -119,11 +119,8 @@ class ShapeExpansion:
             key = (round(q_p / self.GRID_MM), round(q_d / self.GRID_MM))
             JK = self._node(key)[1]
             p, d = q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM
-            T = np.array(
-                [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2 * p, 0.0, 1.0, 0.0, 0.0,
-                 d, p, 0.0, 1.0, 0.0, 0.0, 2 * d, 0.0, 0.0, 1.0]
-            ).reshape(5, 5)  # fmt: skip
-            return self.points(q[0])[None], (JK @ T)[None]
+            c = self.catheter.points_at(np.array([q_p]), np.array([q_d]))
+            return c, measurement_kernels.carry_expansion(JK, p, d)
         keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
         delta = q[:, 1:] - keys * self.GRID_MM
         distinct, index = np.unique(keys, axis=0, return_inverse=True)

@@ -5,7 +5,8 @@
   each is present, and the noise's part invariant under rotations about z;
 - :func:`horizontal_radius`: how far the present points are from the rotation axis (how
   much a frame can say about the bending plane);
-- :func:`model_error`: the white model-error covariance of every group.
+- :func:`model_error`: the white model-error covariance of every group;
+- :func:`carry_expansion`: the shape's expansion carried from its grid node to the frame.
 
 Each replaces a dozen numpy calls on arrays of a few elements. ``njit(cache=True,
 nogil=True)`` as in :mod:`tracker.estimators.ukf_kernels`; :func:`warm_up` compiles or loads
@@ -129,6 +130,25 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
     return y, R, R_bar, present
 
 
+@numba.njit(cache=True, nogil=True)
+def carry_expansion(JK, p, d):
+    """``[J K]`` (P, 3, 5) of a grid node carried to a deviation (p, d) mm from it: J gains
+    ``K dquad/ddq`` (columns ``J_p + 2 p K_pp + d K_pd`` and ``J_d + p K_pd + 2 d K_dd``), K
+    stays; the product ``[J K] T`` of :meth:`ShapeExpansion.expanded` without its zeros,
+    (1, P, 3, 5)."""
+    P = JK.shape[0]
+    out = np.empty((1, P, 3, 5))
+    for i in range(P):
+        for a in range(3):
+            row = JK[i, a]
+            out[0, i, a, 0] = row[0] + 2.0 * p * row[2] + d * row[3]
+            out[0, i, a, 1] = row[1] + p * row[3] + 2.0 * d * row[4]
+            out[0, i, a, 2] = row[2]
+            out[0, i, a, 3] = row[3]
+            out[0, i, a, 4] = row[4]
+    return out
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types (once
@@ -140,6 +160,9 @@ def warm_up() -> None:
     for has in (True, False):
         assemble_positions(c[:, 0], eye[:, 0], c[:, 1:], eye[:, 1:], 1, G, G + 1, has, has)
     model_error(np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1))
+    carry_expansion(np.zeros((G, 3, 5)), 0.1, 0.1)
 
 
-__all__ = ["assemble_positions", "horizontal_radius", "model_error", "warm_up"]
+__all__ = [
+    "assemble_positions", "carry_expansion", "horizontal_radius", "model_error", "warm_up"
+]

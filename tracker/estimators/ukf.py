@@ -50,7 +50,8 @@ Array = np.ndarray
 
 
 def _array(value, shape: tuple[int, ...]) -> Array | None:
-    return None if value is None else np.asarray(value, dtype=float).reshape((1,) + shape)
+    # A copy: the kernels take writable arrays, and recorded ones are often read-only.
+    return None if value is None else np.array(value, dtype=float).reshape((1,) + shape)
 
 
 def observation_groups(
@@ -75,13 +76,13 @@ def observation_groups(
     markers_cov = observation.markers_cov_b
     partial = False
     if markers is not None and markers_cov is not None:
-        markers = np.asarray(markers, dtype=float)
+        markers = np.array(markers, dtype=float)  # a writable copy, as _array
         if markers.shape != (n_markers, 3):
             raise ValueError(
                 f"observation has markers of shape {markers.shape}, the catheter model has "
                 f"{n_markers} markers"
             )
-        markers_cov = np.asarray(markers_cov, dtype=float)
+        markers_cov = np.array(markers_cov, dtype=float)
         if markers_cov.shape == (3 * n_markers, 3 * n_markers):
             blocks = markers_cov.reshape(n_markers, 3, n_markers, 3)
             markers_cov = blocks[np.arange(n_markers), :, np.arange(n_markers), :]
@@ -104,7 +105,7 @@ def observation_groups(
         velocity = velocity_cov = None
     cross = observation.velocity_tip_cov_b
     if cross is not None:
-        cross = np.asarray(cross, dtype=float)
+        cross = np.array(cross, dtype=float)
         if cross.shape != (3, 3):
             raise ValueError(f"velocity_tip_cov_b must have shape (3, 3), got shape {cross.shape}")
         cross = cross[None]
@@ -179,7 +180,7 @@ def check_observation(observation: Observation, last_time_s: float) -> tuple[flo
         raise ValueError(f"observation time must be finite, got {observation.time_s}")
     if math.isfinite(last_time_s) and t < last_time_s:
         raise ValueError(f"observations must arrive in time order: {t} s after {last_time_s} s")
-    q = np.asarray(observation.q, dtype=float)
+    q = np.array(observation.q, dtype=float)  # writable, whatever the caller's
     if q.shape != (3,) or not all(map(math.isfinite, q.tolist())):
         raise ValueError(f"observation.q must be three finite numbers, got {observation.q}")
     return t, q
