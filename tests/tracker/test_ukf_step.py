@@ -28,7 +28,7 @@ def run(catheter, settings, data, trials, monkeypatch, fused: bool):
 
     def counted(*args):
         if not fused:  # first_only False: stop after the predict
-            args = args[:33] + (False,) + args[34:]
+            args = args[:33] + (False,) + args[34:]  # first_only
         result = real(*args)
         finished.append(result[0] == ukf_step.FINISHED_UPDATE)
         return result

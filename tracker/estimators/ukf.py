@@ -169,6 +169,17 @@ def _view_groups(catheter: Catheter, observation: Observation, q: Array):
     return groups, partial
 
 
+_FLAGS_SEEN: dict[int, Flag] = {}
+
+
+def _flag(value: int) -> Flag:
+    """``Flag(value)``, kept: making a flag combination costs more than a filter's report."""
+    flag = _FLAGS_SEEN.get(value)
+    if flag is None:
+        flag = _FLAGS_SEEN[value] = Flag(value)
+    return flag
+
+
 def check_observation(observation: Observation, last_time_s: float) -> tuple[float, Array]:
     """The frame's time and joint values, or a ValueError for a frame no filter can use.
 
@@ -289,7 +300,7 @@ class BendingPlaneUKF:
             delta_L_rad=float(r.delta_L_rad[0]),
             std_rad=float(r.std_rad[0]),
             q_r_rad=float(q[0]),
-            flags=Flag(int(r.flags[0])),
+            flags=_flag(int(r.flags[0])),
             informative_radius_mm=float(r.radius_mm[0]),
             innovation=r.innovation[0],
             nis=nis if math.isfinite(nis) else None,

@@ -298,7 +298,6 @@ class FilterBank:
             # and the report in one call (ukf_step).
             c = np.ascontiguousarray
             G = frame.present.shape[1]
-            nis, nis_dof = np.full(B, np.nan), np.zeros(B, dtype=np.int64)
             low, high = s.noise_scale_bounds
             scale = self.noise_scale * self.mismatch_scale
             stage, flags, dt, turn, Q, prior, self._factor_ok, self._factor, *rest = (
@@ -309,17 +308,15 @@ class FilterBank:
                     s.velocity_relative_error, self._first_only, self._every, self._slot_0,
                     self.log_weight, self.mismatch_scale, MISMATCH_DECAY, scale, self.spread,
                     c(frame.y), c(frame.q), self.Wm, self.Wc, *self._update_rules(G, 3)[:-1],
-                    self.rejected, self.bad_run, fused_tip, nis, nis_dof, self.noise_scale,
-                    s.estimate_noise, _gate_table(s.gate_probability, 3 * G),
+                    self.rejected, self.bad_run, fused_tip, self.noise_scale, s.estimate_noise, _gate_table(s.gate_probability, 3 * G),
                     s.noise_forgetting, low, high, self.initialised,
                 )
             )  # fmt: skip
             terms = rest[:6]
             if stage == ukf_step.FINISHED_UPDATE:
                 return self._finish_fused(
-                    frame, rest[6:], flags, dt, turn, prior, fused_tip, nis, nis_dof, scale,
-                    terms,
-                )  # fmt: skip
+                    frame, rest[6:], flags, dt, turn, prior, fused_tip, scale, terms
+                )
         else:
             flags, dt, turn, Q, prior, self._factor_ok, self._factor = ukf_rules.begin_step(
                 *process
@@ -347,24 +344,21 @@ class FilterBank:
         out.rejected = self.rejected.copy()
         return out
 
-    def _finish_fused(self, frame, results, flags, dt, turn, prior, fused_tip, nis, nis_dof,
-                      scale, terms) -> StepResult:  # fmt: skip
+    def _finish_fused(self, frame, results, flags, dt, turn, prior, fused_tip, scale, terms
+                      ) -> StepResult:  # fmt: skip
         """The rest of a step that :func:`~tracker.estimators.ukf_step.step_3d` updated: the
         innovation shown, and what stays in Python when a trial needs it (the closed form,
         several hypotheses)."""
         # update_3d's (status, nis, dof, rejected) are already in the bank and in the flags.
-        (_, _, _, _, inlier, shown, rho, spawn, first, row, closed_form, first_only, single,
-         finished, mean, std) = results  # fmt: skip
+        (_, _, _, _, _, shown, _, spawn, first, row, closed_form, first_only, single, finished,
+         mean, std, nis, nis_dof, innovation) = results  # fmt: skip
         B = self.B
         out = StepResult(
             delta_L_rad=None, std_rad=None, flags=flags, nis=nis, nis_dof=nis_dof,
             rejected=None, radius_mm=terms[4], innovation=[None] * B,
         )  # fmt: skip
-        if B == 1 and row[0] >= 0:
-            i = row[0]
-            if shown[i]:
-                G = frame.present.shape[1]
-                out.innovation[0] = rho[i].reshape(G, 3)[inlier[i]].ravel()
+        if B == 1 and row[0] >= 0 and shown[row[0]]:
+            out.innovation[0] = innovation
         self.tip_fused = fused_tip
         if finished:
             self._first_only, self._single = first_only, single

@@ -42,16 +42,19 @@ def step_3d(
     reacquire_variance, c, n_positions, JK, has_velocity, u_norm, white_mm, relative_error,
     first_only, every, slot_0, log_weight, mismatch_scale, mismatch_decay, scale, spread, y,
     q_frame, Wm, Wc, outlier_probability, outlier_scale, threshold, doubt, gates,
-    min_information, rejected, bad_run, tip_fused, out_nis, out_dof, noise_scale, adapt,
-    gate_table, forgetting, low, high, initialised,
+    min_information, rejected, bad_run, tip_fused, noise_scale, adapt, gate_table, forgetting,
+    low, high, initialised,
 ):  # fmt: skip
     """:func:`begin_frame_3d`, then, where every trial's slot 0 updates, :func:`update_3d` of
     those hypotheses and :func:`finish_update` (the arguments are theirs, in their order;
     ``every`` and ``slot_0`` are the rows; ``scale``, the noise scale times the mismatch
     scale before the step).
 
-    Returns ``(stage, begin_frame_3d's 13 results, update_3d's 7, finish_update's 9)``; the
-    last 16 are empty placeholders unless ``stage`` is :data:`FINISHED_UPDATE`.
+    Returns ``(stage, begin_frame_3d's 13 results, update_3d's 7, finish_update's 9, nis,
+    nis_dof, innovation)``: the last 19 are empty placeholders unless ``stage`` is
+    :data:`FINISHED_UPDATE`; then ``nis`` and ``nis_dof`` (B,) are the step's report and,
+    for a bank of one, ``innovation`` the fused residuals of the update shown (the inlying
+    groups', in order; empty when none is shown).
     """
     (flags, dt, turn, Q, prior, ok, L, usable, measured, all_wide, updating, radius,
      M) = begin_frame_3d(
@@ -81,8 +84,10 @@ def step_3d(
             stage, flags, dt, turn, Q, prior, ok, L, usable, measured, all_wide, updating,
             radius, M, empty_i, empty_f, empty_i, empty_i, np.zeros((0, G), dtype=np.bool_),
             empty_b, np.zeros((0, 3 * G)), empty_b, empty_b, np.zeros(0, dtype=np.intp), False,
-            False, False, False, empty_f, empty_f,
+            False, False, False, empty_f, empty_f, empty_f, empty_i, empty_f,
         )  # fmt: skip
+    out_nis = np.full(B, np.nan)
+    out_dof = np.zeros(B, dtype=np.int64)
     status, nis, dof, rejected_groups, inlier, shown, rho = update_3d(
         every, slot_0, x, P, L, ok, good_x, good_P, log_weight, mismatch_scale,
         mismatch_decay, spread, c, JK, y, q_frame, R_bar, scale, M, present, has_velocity, Wm,
@@ -97,10 +102,19 @@ def step_3d(
         tip_fused, noise_scale, adapt, gate_table, forgetting, low, high, flag, x, P,
         initialised, prior, deviation,
     )  # fmt: skip
+    innovation = empty_f
+    if B == 1 and row[0] >= 0 and shown[row[0]]:
+        i = row[0]
+        innovation = np.empty(3 * np.sum(inlier[i]))
+        k = 0
+        for g in range(G):
+            if inlier[i, g]:
+                innovation[k : k + 3] = rho[i, 3 * g : 3 * g + 3]
+                k += 3
     return (
         stage, flags, dt, turn, Q, prior, ok, L, usable, measured, all_wide, updating, radius,
         M, status, nis, dof, rejected_groups, inlier, shown, rho, spawn, first, row,
-        closed_form, single_first, single, finished, mean, std,
+        closed_form, single_first, single, finished, mean, std, out_nis, out_dof, innovation,
     )  # fmt: skip
 
 
@@ -134,8 +148,7 @@ def warm_up() -> None:
                 np.zeros((B, H)), np.ones(B), 0.99, np.ones(B), 1.0, c.copy(), np.zeros((B, 3)),
                 W, W, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)), 1.0,
                 np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int64),
-                np.zeros(B, dtype=bool), np.zeros(B), np.zeros(B, dtype=np.int64), np.ones(B),
-                True,
+                np.zeros(B, dtype=bool), np.ones(B), True,
                 shared(np.full(3 * G + 1, 10.0)), 0.9, 0.5, 2.0, np.ones(B, dtype=bool),
             )  # fmt: skip
 
