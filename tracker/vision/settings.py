@@ -135,7 +135,7 @@ class SegmentationSettings:
     epipolar_gate_px: float = 3.0
     max_tip_width_ratio: float = 0.88
     tip_band: bool = True
-    tip_direction_sigma_rad: float = 0.05
+    tip_direction_sigma_rad: float = 0.03
     band_fit_steps: int = 3
     normalise: bool = True
     max_gain_change: float = 2.0
