@@ -647,14 +647,21 @@ class Segmenter:
 
     def _fitted_tip_band(self, fit, band: _Band, direction: Array, extent: float):
         """The tip band placed by the fit, the catheter's direction from its centre to the
-        band's end (the fit's chord) and the extent past the centre of the same far end."""
+        band's end (the fit's chord), and the extent of the far end past the band's
+        *centroid* along that direction.
+
+        The extent stays measured from the centroid: the far end is the centroid plus the
+        mass beyond it (:func:`kernels.ends`), and the centroid's offset along the catheter
+        (the band's threshold cuts its blurred edge toward the tip, not the one toward the
+        tube) is in the end as well, so it cancels in their difference. Measured from the
+        fitted centre, which does not share it, the extent would carry that offset, which
+        changes with the view's foreshortening: the pair's tangent, and its tip, would move
+        with the configuration (0.07 -> 0.12 px along the catheter without noise)."""
         row = self._fit(fit, band, (float(direction[0]), float(direction[1])), True)
         if row is None:
             return band, direction, extent
-        end_x = band.c[0] + extent * direction[0]
-        end_y = band.c[1] + extent * direction[1]
         new_direction = row[3:5].copy()
-        new_extent = (end_x - row[1]) * new_direction[0] + (end_y - row[2]) * new_direction[1]
+        new_extent = extent * (direction[0] * new_direction[0] + direction[1] * new_direction[1])
         return self._fitted(band, row), new_direction, float(new_extent)
 
     def _overlapping(self, bins, D, thickness_of, bands: list[_Band], along: Array) -> bool:
