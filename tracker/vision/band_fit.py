@@ -42,8 +42,8 @@ FIT_FIELDS = 8
 """A row of :func:`fit_band`: ok (1 or 0), c_x, c_y, direction (x, y) of the chord from the
 centre to the band's end toward the tip, cov_xx, cov_xy, cov_yy of the centre."""
 
-_ALONG_MARGIN_PX = 3.5
-_ACROSS_MARGIN_PX = 3.0
+_ALONG_MARGIN_PX = 2.5
+_ACROSS_MARGIN_PX = 2.0
 """The window of the fit: the band's and the tube's outline, past them by these (the blur
 is about a pixel), px."""
 
