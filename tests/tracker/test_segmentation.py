@@ -755,17 +755,22 @@ def test_photometry_and_tip_kernels_equal_their_numpy_references(kernel_calls):
 
 
 def ref_tip_tangent(linear, extent, cap_px, coarse, cap):
-    """The least misfit over the coarse directions, then over the cap turned onto the best."""
+    """The least misfit over the coarse directions, then over the cap turned onto the best,
+    then over the cap shrunk five times turned onto the best of those."""
     def cost(T):
         px, py, along, sin_a = np.split(linear @ T, 4)
         r_along = extent[:, None] - along - cap_px[:, None] * np.abs(sin_a)
         return (px**2 + py**2 - along**2 + r_along**2).sum(axis=0)
 
     t = coarse[:, np.argmin(cost(coarse))]
-    u = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u = u / np.linalg.norm(u)
-    fine = np.array([u, np.cross(t, u), t]).T @ cap
-    return fine[:, np.argmin(cost(fine))], cost(fine).min()
+    for scale in (1.0, 0.2):  # the cap, then the cap shrunk five times
+        u = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u = u / np.linalg.norm(u)
+        a, b = scale * cap[0], scale * cap[1]
+        shrunk = np.array([a, b, np.sqrt(np.maximum(1.0 - a * a - b * b, 0.0))])
+        fine = np.array([u, np.cross(t, u), t]).T @ shrunk
+        t = fine[:, np.argmin(cost(fine))]
+    return t, cost(fine).min()
 
 
 def test_kernels_are_ready_before_the_first_frame():
