@@ -92,6 +92,6 @@ def test_each_rule_names_its_problem(name, change, problem):
 
 
 def test_any_input_is_checked_without_compiling_again():
-    for name, change, _ in CASES:
+    for _, change, _ in CASES:
         observation_problem(dataclasses.replace(GOOD, **change), 2)
     assert len(check_kernels.check_buffer.signatures) == 1

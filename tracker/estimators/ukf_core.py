@@ -308,8 +308,9 @@ class FilterBank:
                     s.velocity_relative_error, self._first_only, self._every, self._slot_0,
                     self.log_weight, self.mismatch_scale, MISMATCH_DECAY, scale, self.spread,
                     c(frame.y), c(frame.q), self.Wm, self.Wc, *self._update_rules(G, 3)[:-1],
-                    self.rejected, self.bad_run, fused_tip, self.noise_scale, s.estimate_noise, _gate_table(s.gate_probability, 3 * G),
-                    s.noise_forgetting, low, high, self.initialised,
+                    self.rejected, self.bad_run, fused_tip, self.noise_scale, s.estimate_noise,
+                    _gate_table(s.gate_probability, 3 * G), s.noise_forgetting, low, high,
+                    self.initialised,
                 )
             )  # fmt: skip
             terms = rest[:6]
