@@ -35,6 +35,8 @@ import math
 import numba
 import numpy as np
 
+from tracker.estimators.linalg_kernels import _cholesky_into
+
 N_PARAMS = 11
 """Parameters of the model: c_x, c_y, theta, kappa, sigma, h, r_b, r_1, r_2, A_b, A_t."""
 
@@ -191,27 +193,6 @@ def _model(p, x, y, at_tip, jac):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cholesky(A, L):
-    """The lower Cholesky factor of the symmetric ``A`` into ``L``; False when ``A`` is not
-    positive definite."""
-    n = A.shape[0]
-    for j in range(n):
-        d = A[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return False
-        d = math.sqrt(d)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-    return True
-
-
-@numba.njit(cache=True, nogil=True)
 def _solve(L, b, x):
     """x = A^-1 b for A = L L^T."""
     n = L.shape[0]
@@ -308,7 +289,7 @@ def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y
         C[:] = A
         for j in range(N_PARAMS):
             A[j, j] *= 1.0 + damping
-        if not _cholesky(A, L):
+        if not _cholesky_into(A, L):
             return out
         _solve(L, g, step)
         for j in range(N_PARAMS):
@@ -323,7 +304,7 @@ def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y
     # The centre's covariance from the inverse normal matrix of the last step (the step
     # that converged: it hardly moves from there), scaled by the misfit per degree of
     # freedom (unity for a good model).
-    if not _cholesky(C, L):
+    if not _cholesky_into(C, L):
         return out
     # Columns 0 and 1 of the inverse: the centre's block.
     e = np.zeros(N_PARAMS)
