@@ -35,7 +35,7 @@ import math
 import numba
 import numpy as np
 
-from tracker.estimators.linalg_kernels import _cholesky_into
+from tracker.estimators.linalg_kernels import _cholesky_into, _solve_lower
 
 N_PARAMS = 11
 """Parameters of the model: c_x, c_y, theta, kappa, sigma, h, r_b, r_1, r_2, A_b, A_t."""
@@ -193,22 +193,6 @@ def _model(p, x, y, at_tip, jac):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve(L, b, x):
-    """x = A^-1 b for A = L L^T."""
-    n = L.shape[0]
-    for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * x[k]
-        x[i] = t / L[i, i]
-    for i in range(n - 1, -1, -1):
-        t = x[i]
-        for k in range(i + 1, n):
-            t -= L[k, i] * x[k]
-        x[i] = t / L[i, i]
-
-
-@numba.njit(cache=True, nogil=True)
 def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y,
              half_length_px, radius_px, at_tip, iterations, max_move_px):
     """The centre of one band by a least-squares fit of the local model (module docstring).
@@ -291,7 +275,8 @@ def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y
             A[j, j] *= 1.0 + damping
         if not _cholesky_into(A, L):
             return out
-        _solve(L, g, step)
+        step[:] = g
+        _solve_lower(L, step)
         for j in range(N_PARAMS):
             p[j] += step[j]
         if not (p[4] > 0.2 and p[5] > 0.0 and p[6] > 0.3 and p[7] > 0.3 and p[8] > 0.3):
@@ -309,11 +294,13 @@ def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y
     # Columns 0 and 1 of the inverse: the centre's block.
     e = np.zeros(N_PARAMS)
     e[0] = 1.0
-    _solve(L, e, step)
+    step[:] = e
+    _solve_lower(L, step)
     cxx, cxy = step[0], step[1]
     e[0] = 0.0
     e[1] = 1.0
-    _solve(L, e, step)
+    step[:] = e
+    _solve_lower(L, step)
     cyy = step[1]
     scale = max(cost / max(n - N_PARAMS, 1), 1.0)
     theta, kappa, h = p[2], p[3], p[5]
