@@ -227,3 +227,121 @@ def test_a_run_takes_opencv_to_one_thread_and_leaves_the_sinks_free(session, joi
     assert sink.cv_threads == [1] * 4
     assert cv2.getNumThreads() == before
     assert tracker.idle.is_set()
+
+
+# ------------------------------------------------------------------------- rehearsal
+class RehearsingSegmenter(StandInSegmenter):
+    """A stand-in that also rehearses: records what it was given and takes ``took_s`` of
+    the loop's clock (or raises ``fails``)."""
+
+    def __init__(self, frames, clock, took_s=0.004, fails=None):
+        super().__init__(frames)
+        self.clock, self.took_s, self.fails = clock, took_s, fails
+        self.rehearsed = []
+
+    def rehearse(self, images, predicted_px=None):
+        if self.fails is not None:
+            raise self.fails
+        self.rehearsed.append((int(images[0][0, 0]), predicted_px))
+        self.clock.now += self.took_s
+
+
+class Clock:
+    now = 10.0
+
+    def __call__(self):
+        return self.now
+
+
+def rehearsing_loop(session, joints, segmenter, clock):
+    scene = session.scene
+    return LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        make_estimator("ukf", scene.catheter), [MemorySink()], joints=joints.receiver,
+        segmenter=segmenter, max_time_jump_s=1e9, monotonic=clock,
+    )  # fmt: skip
+
+
+def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, joints):
+    """The last frame's images are segmented again while priming, around the next frame's
+    region, and the next priming starts earlier by the rehearsal's running time."""
+    clock = Clock()
+    segmenter = RehearsingSegmenter(session.frames, clock)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    for k in range(3):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+    joints.send_until(session.frames[3].time_s - 0.001)
+    clock.now = 10.15 - 0.5 * PRIME_LEAD_S
+    assert tracker.prime(clock.now)
+    (index, region), = segmenter.rehearsed
+    assert index == 2  # the last frame's images
+    for got, want in zip(region, tracker._region_for(session.frames[3].time_s), strict=True):
+        np.testing.assert_array_equal(got, want)  # where the next frame is expected
+    clock.now = 10.15
+    step(tracker, session, joints, 3, received_s=clock.now)
+    # The next frame is due at 10.20: primed a lead plus the rehearsal's 4 ms before.
+    assert not tracker.prime(10.20 - PRIME_LEAD_S - 0.005)
+    assert tracker.prime(10.20 - PRIME_LEAD_S - 0.0035)
+    assert [i for i, _ in segmenter.rehearsed] == [2, 3]
+    tracker.close()
+
+
+def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
+    clock = Clock()
+    segmenter = RehearsingSegmenter(session.frames, clock, fails=RuntimeError("boom"))
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    for k in range(3):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+    joints.send_until(session.frames[3].time_s)
+    assert tracker.prime(10.15 - 0.5 * PRIME_LEAD_S)  # primed all the same...
+    assert not tracker.rehearse  # ...and no more rehearsals
+    clock.now = 10.15
+    assert step(tracker, session, joints, 3, received_s=clock.now).estimate.valid
+    tracker.close()
+
+
+def test_a_rehearsal_longer_than_a_fifth_of_the_period_is_skipped(session, joints):
+    """On a machine too busy to spare it: tried again later, at most now and then."""
+    clock = Clock()
+    segmenter = RehearsingSegmenter(session.frames, clock, took_s=0.02)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    for k in range(8):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+        joints.send_until(session.frames[k].time_s + 0.05)
+        tracker.prime(clock.now + 0.05 - 0.5 * PRIME_LEAD_S)
+    assert 1 <= len(segmenter.rehearsed) <= 2 and tracker.rehearse
+    tracker.close()
+
+
+def test_a_rehearsal_changes_nothing_in_the_segmenter():
+    """Pairs segmented with a rehearsal of each before the next give the same points as
+    without (the background model, its shift samples and the regions are untouched)."""
+    from models.catheter import default_catheter
+    from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
+    from replay.simulation.simulator import default_scene
+    from tracker.vision.pair import PairSegmenter
+
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=2,
+                        nuisance=ImagingNuisance(gain_flicker=0.1, vibration_px=0.3))
+    rng = np.random.default_rng(2)
+    qs = np.column_stack([np.linspace(0, 1, 12), np.linspace(0.8, -0.6, 12), np.full(12, 0.7)])
+    pairs = [renderer.render(q, 0.4, rng).images for q in qs]
+    results = []
+    for rehearse in (False, True):
+        segmenter = PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm,
+                                  renderer.backgrounds)
+        out = []
+        for k, images in enumerate(pairs):
+            if rehearse and k:
+                segmenter.rehearse(pairs[k - 1])
+                segmenter.rehearse(pairs[k - 1], (None, np.zeros((2, 2))))
+            seg = segmenter.segment(images)
+            out.append(np.concatenate([np.ravel(a) for a in (*seg.uv, *seg.cov)]))
+        results.append(np.array(out))
+    assert np.isfinite(results[0]).mean() > 0.9
+    np.testing.assert_array_equal(results[0], results[1])

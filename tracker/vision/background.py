@@ -344,6 +344,20 @@ class CameraSegmenter:
             self.last = None
         return seg
 
+    def rehearse(self, image: Array, predicted_px: Array | None = None) -> None:
+        """Segment ``image`` as :meth:`segment` would, and change nothing: no background
+        update, no shift, no region kept (``LiveTracker.prime`` runs it on the last frame
+        just before the next one is due, so that the segmentation's code and data are back
+        in the processor's caches when it comes)."""
+        model = self.background
+        photometry = self.segmenter.photometry(image, model.image, model.samples)
+        if self.segmenter.photometry_flags(photometry) & NOT_SEGMENTED:
+            return
+        self.segmenter.segment(
+            image, model.image, self.base_px, photometry=photometry,
+            search_px=self._search_points(predicted_px), prepared=model.prepared,
+        )  # fmt: skip
+
     def in_camera_frame(self, seg: ViewSegmentation) -> ViewSegmentation:
         """A segmentation of this camera moved from the frame's pixels into those of the
         background image it was given (where the rig's calibration holds).

@@ -387,6 +387,17 @@ class PairSegmenter:
         )
         return combine_views(self.segmenter, views, self.rig)
 
+    def rehearse(
+        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
+    ) -> None:
+        """:meth:`segment` without its result and without changing anything
+        (:meth:`CameraSegmenter.rehearse`): the live loop warms the processor's caches with
+        it just before a frame is due."""
+        if predicted_px is None:
+            predicted_px = (None,) * len(self.cameras)
+        for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True):
+            camera.rehearse(image, predicted)
+
     def frame(
         self,
         time_s: float,
