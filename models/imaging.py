@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from models import _imaging_kernels
+
 Array = np.ndarray
 
 MIN_PLANE_ANGLE_RAD = np.deg2rad(1.0)
@@ -28,6 +30,10 @@ MIN_BASELINE_MM = 1.0
 """Camera centres closer than this are treated as coincident (real rigs: hundreds of mm)."""
 
 _ROTATION_TOL = 1e-6
+_PARALLEL = (
+    "cannot triangulate {} point(s): their viewing rays are parallel (a point on the line"
+    " through the camera centres?)"
+)
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)  # px
 
 
@@ -441,6 +447,7 @@ class Rig:
             object.__setattr__(self, "_M", None)
             object.__setattr__(self, "_M_views", None)
             object.__setattr__(self, "_cameras", _Cameras.of(views))
+            _imaging_kernels.warm_up()
 
     def __setattr__(self, name, value):
         raise AttributeError("a Rig is immutable")
@@ -607,10 +614,19 @@ class Rig:
         if self._M is not None:
             return uv.reshape(batch + (-1,)) @ self._M.T
         cams = self._cameras
-        if cams.distorted:
-            uv = uv.copy()
-            for v in cams.distorted:
-                uv[..., v, :] = self.views[v].undistort(uv[..., v, :])
+        if not cams.distorted:
+            # One compiled call (the same arithmetic as below, point by point).
+            V = len(self.views)
+            points, parallel = _imaging_kernels.triangulate(
+                np.array(uv.reshape(-1, V, 2), dtype=float, order="C"), cams.principal, cams.focal,
+                cams.R_cam_w, cams.t_cam_w,
+            )  # fmt: skip
+            if parallel.any():
+                raise ValueError(_PARALLEL.format(np.count_nonzero(parallel)))
+            return points.reshape(batch + (3,))
+        uv = uv.copy()
+        for v in cams.distorted:
+            uv[..., v, :] = self.views[v].undistort(uv[..., v, :])
         m = (uv - cams.principal) / cams.focal  # normalised coordinates
         # x_cam[:2] = m x_cam[2] is linear in x: (m r_3 - R_12) x = t_12 - m t_3, two rows of
         # A x = b per view.
@@ -619,10 +635,7 @@ class Rig:
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
         parallel = s[..., -1] <= 1e-12 * s[..., 0]
         if parallel.any():
-            raise ValueError(
-                f"cannot triangulate {np.count_nonzero(parallel)} point(s): their viewing rays"
-                " are parallel (a point on the line through the camera centres?)"
-            )
+            raise ValueError(_PARALLEL.format(np.count_nonzero(parallel)))
         y = (U.mT @ b[..., None])[..., 0] / s
         return (Vt.mT @ y[..., None])[..., 0]
 
@@ -633,6 +646,22 @@ class Rig:
         if self._M is not None:
             M_v = self._M_views
             cov_w = np.zeros(x.shape[:-1] + (3, 3)) + (M_v @ cov @ M_v.mT).sum(axis=-3)
+        elif not self._cameras.distorted:
+            # One compiled call (the same arithmetic as below, point by point).
+            cams, V = self._cameras, len(self.views)
+            batch = np.broadcast_shapes(x.shape[:-1], cov.shape[:-3])
+            cov_w, behind = _imaging_kernels.propagate(
+                np.array(np.broadcast_to(x, batch + (3,)).reshape(-1, 3), dtype=float,
+                         order="C"),
+                np.array(np.broadcast_to(cov, batch + (V, 2, 2)).reshape(-1, V, 2, 2),
+                         dtype=float, order="C"),
+                cams.R_cam_w, cams.t_cam_w, cams.inverse_focal,
+            )  # fmt: skip
+            if behind.any():
+                x_cam = (x[..., None, None, :] @ cams.R_cam_w.mT)[..., 0, :] + cams.t_cam_w
+                for v in range(V):  # raises for the first view concerned
+                    _check_in_front(x_cam[..., v, 2])
+            return cov_w.reshape(batch + (3, 3))
         else:
             cams = self._cameras
             x_cam = (x[..., None, None, :] @ cams.R_cam_w.mT)[..., 0, :] + cams.t_cam_w

@@ -442,7 +442,7 @@ from tracker.types import Observation
 modules = [importlib.import_module(f"tracker.estimators.{name}") for name in (
     "ukf_kernels", "ukf_rules", "ukf_gate", "ukf_step", "measurement_kernels",
     "linalg_kernels", "grid_kernels", "check_kernels")] + [
-    importlib.import_module("models._shape_kernels")]
+    importlib.import_module(f"models.{name}") for name in ("_shape_kernels", "_imaging_kernels")]
 
 def signatures():
     return {(m.__name__, name): len(k.signatures) for m in modules
@@ -450,7 +450,16 @@ def signatures():
 
 catheter = default_catheter()
 estimators = [make_estimator(name, catheter) for name in ("ukf", "ukf-position", "grid")]
+from models.imaging import default_pinhole_rig
+rig = default_pinhole_rig()
 before = signatures()
+for batch in ((), (3,)):  # the reconstruction of a frame's points, read-only inputs too
+    uv = rig.project_all(np.ones(batch + (3,))) if hasattr(rig, "project_all") else np.stack(
+        [view.project(np.ones(batch + (3,))) for view in rig.views], -2)
+    cov = np.broadcast_to(np.eye(2), uv.shape[:-1] + (2, 2))
+    rig.reconstruct_with_covariance(uv, cov)
+    uv.flags.writeable = False
+    rig.reconstruct_with_covariance(uv, cov)
 rng = np.random.default_rng(3)
 cov = np.diag([0.01, 0.01, 0.005])
 n_markers = len(catheter.marker_arclengths_mm)

@@ -1,0 +1,165 @@
+"""Reconstruction of points seen by a pinhole rig, compiled (numba).
+
+The live loop reconstructs a frame's few points from two or more views on every frame (the
+tip and the markers; the pair's tip band at four nudged positions), where numpy spends far
+more on calling its routines for arrays of a few elements than on the arithmetic.
+:func:`triangulate` and :func:`propagate` are the arithmetic of
+:meth:`models.imaging.Rig.reconstruct` and :meth:`models.imaging.Rig.reconstruction_covariance`
+for cameras without distortion (the rig's own Notes give the formulas), one point at a time.
+Compiled once on a machine and cached next to this file.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def triangulate(uv, principal, focal, R_cam_w, t_cam_w):
+    """Least-squares points of the DLT equations of every view.
+
+    Parameters
+    ----------
+    uv : array (N, V, 2)
+        Undistorted image points, px.
+    principal, focal : arrays (V, 2)
+    R_cam_w, t_cam_w : arrays (V, 3, 3), (V, 3)
+
+    Returns
+    -------
+    points : array (N, 3)
+        ``x`` minimising ``|A x - b|`` (``x_cam[:2] = m x_cam[2]``, two rows per view), by
+        the singular value decomposition of A.
+    parallel : array of bool (N,)
+        Points whose rays are parallel (smallest singular value at most 1e-12 of the
+        largest): no point.
+    """
+    N, V = uv.shape[0], uv.shape[1]
+    points = np.empty((N, 3))
+    parallel = np.zeros(N, dtype=np.bool_)
+    A = np.empty((2 * V, 3))
+    b = np.empty(2 * V)
+    for n in range(N):
+        for v in range(V):
+            for a in range(2):
+                m = (uv[n, v, a] - principal[v, a]) / focal[v, a]
+                for j in range(3):
+                    A[2 * v + a, j] = m * R_cam_w[v, 2, j] - R_cam_w[v, a, j]
+                b[2 * v + a] = t_cam_w[v, a] - m * t_cam_w[v, 2]
+        U, s, Vt = np.linalg.svd(A, full_matrices=False)
+        if s[2] <= 1e-12 * s[0]:
+            parallel[n] = True
+            points[n] = np.nan
+            continue
+        y = np.empty(3)
+        for k in range(3):
+            t = 0.0
+            for i in range(2 * V):
+                t += U[i, k] * b[i]
+            y[k] = t / s[k]
+        for j in range(3):
+            t = 0.0
+            for k in range(3):
+                t += Vt[k, j] * y[k]
+            points[n, j] = t
+    return points, parallel
+
+
+@numba.njit(cache=True, nogil=True)
+def propagate(x, cov, R_cam_w, t_cam_w, inverse_focal):
+    """First-order covariances of the points from their image noise.
+
+    ``H^-1 N H^-1`` with ``H = sum_v A_v^T A_v``, ``N = sum_v A_v^T C_v A_v``,
+    ``A_v = [I | -n_v] R_cam_w`` and ``C_v = L_v^-1 cov_v L_v^-T``, ``L_v^-1 = Z_v
+    K_2^-1`` (the Notes of :meth:`models.imaging.Rig.reconstruction_covariance`),
+    symmetrised.
+
+    Parameters
+    ----------
+    x : array (N, 3)
+    cov : array (N, V, 2, 2)
+        Image noise, px^2.
+    R_cam_w, t_cam_w, inverse_focal : arrays (V, 3, 3), (V, 3), (V, 2, 2)
+
+    Returns
+    -------
+    cov_w : array (N, 3, 3)
+        mm^2.
+    behind : array of bool (N,)
+        Points at or behind a camera's centre (no covariance).
+    """
+    N, V = x.shape[0], cov.shape[1]
+    out = np.empty((N, 3, 3))
+    behind = np.zeros(N, dtype=np.bool_)
+    A = np.empty((2, 3))
+    C = np.empty((2, 2))
+    L = np.empty((2, 2))
+    for p in range(N):
+        H = np.zeros((3, 3))
+        M = np.zeros((3, 3))
+        for v in range(V):
+            xc = np.empty(3)
+            for i in range(3):
+                xc[i] = (R_cam_w[v, i, 0] * x[p, 0] + R_cam_w[v, i, 1] * x[p, 1]
+                         + R_cam_w[v, i, 2] * x[p, 2]) + t_cam_w[v, i]  # fmt: skip
+            depth = xc[2]
+            if not depth > 0.0:
+                behind[p] = True
+            for a in range(2):
+                n_a = xc[a] / depth
+                for j in range(3):
+                    A[a, j] = R_cam_w[v, a, j] - n_a * R_cam_w[v, 2, j]
+            for i in range(2):
+                for j in range(2):
+                    L[i, j] = depth * inverse_focal[v, i, j]
+            # C = L cov L^T
+            for i in range(2):
+                for j in range(2):
+                    t = 0.0
+                    for k in range(2):
+                        for m in range(2):
+                            t += L[i, k] * cov[p, v, k, m] * L[j, m]
+                    C[i, j] = t
+            for i in range(3):
+                for j in range(3):
+                    h = 0.0
+                    s = 0.0
+                    for a in range(2):
+                        h += A[a, i] * A[a, j]
+                        for c in range(2):
+                            s += A[a, i] * C[a, c] * A[c, j]
+                    H[i, j] += h
+                    M[i, j] += s
+        if behind[p]:
+            out[p] = np.nan
+            continue
+        H_inv = np.linalg.inv(H)
+        W = H_inv @ M @ H_inv
+        for i in range(3):
+            for j in range(3):
+                out[p, i, j] = 0.5 * (W[i, j] + W[j, i])
+    return out, behind
+
+
+@functools.cache
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernels once per process, with the types the rig
+    passes (its camera arrays are read-only)."""
+
+    def frozen(a):
+        a.flags.writeable = False
+        return a
+
+    # Two cameras 90 degrees apart, 400 mm from the origin.
+    R = frozen(np.array([np.eye(3), [[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]]))
+    t = frozen(np.array([[0.0, 0.0, 400.0], [0.0, 0.0, 400.0]]))
+    pair = frozen(np.ones((2, 2)))
+    points, _ = triangulate(np.zeros((1, 2, 2)), pair, pair, R, t)
+    propagate(np.zeros((1, 3)), np.ones((1, 2, 2, 2)), R, t,
+              frozen(np.broadcast_to(np.eye(2), (2, 2, 2)).copy()))  # fmt: skip
+
+
+__all__ = ["propagate", "triangulate", "warm_up"]
