@@ -445,19 +445,26 @@ class Catheter:
         q = check_joints(q)
         if q.ndim != 2:
             raise ValueError(f"q must have shape (k, 3), got {q.shape}")
+        if self._power_sizes is not None:
+            return self._points_at_powers(np.array(q[:, 1]), np.array(q[:, 2]))
         # The bases' rows of every configuration at once (the same products as one by one).
         eta_p, eta_d = self.proximal.eta.values(q[:, 1]), self.distal.eta.values(q[:, 2])
         eta = np.concatenate([eta_p, eta_d], -1)
         return self._points_from_rows(np.ascontiguousarray(eta))
 
-    def points_at(self, q_p: Array, q_d: Array) -> Array:
-        """:meth:`points` of k configurations given as their bending joints q_p, q_d (arrays
-        (k,) of finite floats, mm; the points do not depend on q_r): (k, 1 + n_markers, 3),
-        mm. One compiled call when both joint bases are power bases (the default model's),
-        the filters' case every frame."""
-        if self._power_sizes is None:
-            q = np.column_stack([np.zeros(len(q_p)), q_p, q_d])
-            return self.points_of(q)
+    @cached_property
+    def _power_sizes(self) -> tuple[int, int] | None:
+        """The sizes of the joint bases when both are power bases (the default model's: their
+        rows are then made in the compiled kernel), else None."""
+        bases = (self.proximal.eta, self.distal.eta)
+        if all(type(basis) is PowerBasis for basis in bases):
+            return bases[0].size, bases[1].size
+        return None
+
+    def _points_at_powers(self, q_p: Array, q_d: Array) -> Array:
+        """The points of configurations (q_p, q_d) (writable float arrays (k,)) of a model
+        with power bases, in one compiled call (the same numbers as the rows made in Python,
+        :func:`models._shape_kernels.points_at_powers`), (k, P, 3)."""
         plan = self._marker_plan
         column_1, column_2 = plan.tip_first_columns
         cd2, sd2 = self._delta_2_cos_sin
@@ -466,17 +473,13 @@ class Catheter:
             column_2, cd2, sd2,
         )  # fmt: skip
 
-    @cached_property
-    def _power_sizes(self) -> tuple[int, int] | None:
-        """The sizes of the joint bases when both are power bases, else None."""
-        bases = (self.proximal.eta, self.distal.eta)
-        if all(type(basis) is PowerBasis for basis in bases):
-            return bases[0].size, bases[1].size
-        return None
-
     def _points_single(self, joints: list[list[float]]) -> Array:
         """The tip's and the markers' points (tip first) of configurations given as float
         triples, (k, P, 3)."""
+        if self._power_sizes is not None:
+            return self._points_at_powers(
+                np.array([q[1] for q in joints]), np.array([q[2] for q in joints])
+            )
         rows = [
             _joint_basis_rows(self.proximal.eta, q_p, False)[0]
             + _joint_basis_rows(self.distal.eta, q_d, False)[0]

@@ -47,7 +47,9 @@ _WEIGHTS = _difference_weights(DEVIATION_STEP_MM)
 def _expansion(catheter: Catheter, q: Array) -> tuple[Array, Array]:
     """c (P, 3) and ``[J K]`` (P, 3, 5) at q by central differences (six shape evaluations,
     through the single-configuration path: fewer numpy calls than the batched one)."""
-    points = catheter.points_at(q[1] + _STEPS[:, 0], q[2] + _STEPS[:, 1])
+    joints = np.repeat(q[None], 6, axis=0)
+    joints[:, 1:] += _STEPS
+    points = catheter.points_of(joints)
     JK = (points.reshape(6, -1).T @ _WEIGHTS).reshape(points.shape[1:] + (5,))
     return points[0], JK
 
@@ -119,8 +121,7 @@ class ShapeExpansion:
             key = (round(q_p / self.GRID_MM), round(q_d / self.GRID_MM))
             JK = self._node(key)[1]
             p, d = q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM
-            c = self.catheter.points_at(np.array([q_p]), np.array([q_d]))
-            return c, measurement_kernels.carry_expansion(JK, p, d)
+            return self.points(q[0])[None], measurement_kernels.carry_expansion(JK, p, d)
         keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
         delta = q[:, 1:] - keys * self.GRID_MM
         distinct, index = np.unique(keys, axis=0, return_inverse=True)
