@@ -248,43 +248,36 @@ def _dot(x, y):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _min(x):
-    """Least element of x (N,), in eight interleaved running minima (as :func:`_sum`)."""
+def _least(x, sign):
+    """Least element of ``sign * x`` (x (N,), sign +-1: exact), in eight interleaved running
+    minima (as :func:`_sum`)."""
     N = x.size
     m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = np.inf
     stop = N - N % 8
     for n in range(0, stop, 8):
-        m0 = min(m0, x[n])
-        m1 = min(m1, x[n + 1])
-        m2 = min(m2, x[n + 2])
-        m3 = min(m3, x[n + 3])
-        m4 = min(m4, x[n + 4])
-        m5 = min(m5, x[n + 5])
-        m6 = min(m6, x[n + 6])
-        m7 = min(m7, x[n + 7])
+        m0 = min(m0, sign * x[n])
+        m1 = min(m1, sign * x[n + 1])
+        m2 = min(m2, sign * x[n + 2])
+        m3 = min(m3, sign * x[n + 3])
+        m4 = min(m4, sign * x[n + 4])
+        m5 = min(m5, sign * x[n + 5])
+        m6 = min(m6, sign * x[n + 6])
+        m7 = min(m7, sign * x[n + 7])
     for n in range(stop, N):
-        m0 = min(m0, x[n])
+        m0 = min(m0, sign * x[n])
     return min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _min(x):
+    """Least element of x (N,)."""
+    return _least(x, 1.0)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _max(x):
-    """Largest element of x (N,), as :func:`_min`."""
-    N = x.size
-    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = -np.inf
-    stop = N - N % 8
-    for n in range(0, stop, 8):
-        m0 = max(m0, x[n])
-        m1 = max(m1, x[n + 1])
-        m2 = max(m2, x[n + 2])
-        m3 = max(m3, x[n + 3])
-        m4 = max(m4, x[n + 4])
-        m5 = max(m5, x[n + 5])
-        m6 = max(m6, x[n + 6])
-        m7 = max(m7, x[n + 7])
-    for n in range(stop, N):
-        m0 = max(m0, x[n])
-    return max(max(max(m0, m1), max(m2, m3)), max(max(m4, m5), max(m6, m7)))
+    """Largest element of x (N,)."""
+    return -_least(x, -1.0)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
