@@ -253,12 +253,12 @@ class Clock:
         return self.now
 
 
-def rehearsing_loop(session, joints, segmenter, clock):
+def rehearsing_loop(session, joints, segmenter, clock, report=print):
     scene = session.scene
     return LiveTracker(
         Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
         make_estimator("ukf", scene.catheter), [MemorySink()], joints=joints.receiver,
-        segmenter=segmenter, max_time_jump_s=1e9, monotonic=clock,
+        segmenter=segmenter, max_time_jump_s=1e9, monotonic=clock, report=report,
     )  # fmt: skip
 
 
@@ -290,13 +290,17 @@ def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, join
 def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
     clock = Clock()
     segmenter = RehearsingSegmenter(session.frames, clock, fails=RuntimeError("boom"))
-    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    lines = []
+    tracker = rehearsing_loop(session, joints, segmenter, clock, lines.append)
     for k in range(3):
         clock.now = 10.0 + 0.05 * k
         step(tracker, session, joints, k, received_s=clock.now)
     joints.send_until(session.frames[3].time_s)
     assert tracker.prime(10.15 - 0.5 * PRIME_LEAD_S)  # primed all the same...
-    assert not tracker.rehearse  # ...and no more rehearsals
+    assert not tracker.rehearse  # ...and no more rehearsals, said once
+    assert [line for line in lines if "rehearsal" in line] == [
+        "the segmentation's rehearsal failed and is off (boom)"
+    ]
     clock.now = 10.15
     assert step(tracker, session, joints, 3, received_s=clock.now).estimate.valid
     tracker.close()

@@ -436,8 +436,9 @@ class LiveTracker:
         started = self.monotonic()
         try:
             self.segmenter.rehearse(self._last_images, self._region_for(time_s))
-        except Exception:  # a rehearsal must never stop the loop: the frame will tell
+        except Exception as exc:  # a rehearsal must never stop the loop
             self.rehearse = False
+            self.report(f"the segmentation's rehearsal failed and is off ({exc})")
             return
         took = self.monotonic() - started
         self._rehearsal_s = took if self._rehearsal_s == 0.0 else (
