@@ -440,17 +440,14 @@ class Catheter:
         return points, u
 
     def points_of(self, q: Array) -> Array:
-        """:meth:`points` of a few configurations q (k, 3) at once through the
-        single-configuration path (the same numbers to rounding), (k, 1 + n_markers, 3), mm."""
+        """:meth:`points` of configurations q (k, 3) at once: the same numbers as one by one
+        (the single-configuration path, in one call), (k, 1 + n_markers, 3), mm."""
         q = check_joints(q)
         if q.ndim != 2:
             raise ValueError(f"q must have shape (k, 3), got {q.shape}")
         if self._power_sizes is not None:
             return self._points_at_powers(np.array(q[:, 1]), np.array(q[:, 2]))
-        # The bases' rows of every configuration at once (the same products as one by one).
-        eta_p, eta_d = self.proximal.eta.values(q[:, 1]), self.distal.eta.values(q[:, 2])
-        eta = np.concatenate([eta_p, eta_d], -1)
-        return self._points_from_rows(np.ascontiguousarray(eta))
+        return self._points_single(q.tolist())
 
     @cached_property
     def _power_sizes(self) -> tuple[int, int] | None:

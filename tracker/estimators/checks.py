@@ -26,6 +26,7 @@ billion seconds ahead: all are such skipped steps. Estimators built directly (e.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -295,6 +296,45 @@ class CheckedEstimator:
         self._reset_state()
         self.skipped["clock restarted"] = self.skipped.get("clock restarted", 0) + 1
         return True
+
+    def run(self, observations: Sequence[Observation]) -> list[Estimate]:
+        """The steps of frames in order, as :meth:`step` on each in turn gives them: the
+        checks frame by frame, the accepted frames through the wrapped estimator's ``run``
+        (in one call between skipped frames, which need the estimate held before them)."""
+        observations = list(observations)
+        estimates: list[Estimate | None] = [None] * len(observations)
+        accepted: list[int] = []
+
+        def flush() -> None:
+            if not accepted:
+                return
+            for i, estimate in zip(
+                accepted, self.inner.run([observations[i] for i in accepted]), strict=True
+            ):
+                estimates[i] = estimate
+                if self.check_time and estimate.valid:  # held by a skipped step of a filter
+                    self._last = estimate
+            accepted.clear()
+
+        for i, observation in enumerate(observations):
+            t = float(observation.time_s)
+            problem = "time not finite" if not math.isfinite(t) else None
+            if problem is None:
+                problem = observation_problem(observation, self.n_markers, self._buffer)
+            if problem is None and self.check_time:
+                if self._rejected_times:  # a clock restart resets the estimator: in order
+                    flush()
+                if not self._time_ok(t):
+                    problem = "time not after the last frame or too far ahead"
+                else:
+                    self._last_time_s = t
+            if problem is None:
+                accepted.append(i)
+            else:
+                flush()
+                estimates[i] = self._skip(observation, problem)
+        flush()
+        return estimates
 
     def step(self, observation: Observation) -> Estimate:
         """The wrapped estimator's step, or a flagged, skipped step for a bad observation."""

@@ -111,8 +111,8 @@ class ShapeExpansion:
         """c (B, P, 3) and ``[J K]`` (B, P, 3, 5) at joint values q (B, 3).
 
         J is carried from the node to q by the expansion itself, ``J + K dquad/ddq``
-        (:func:`deviation_jacobian`), here as one product ``[J K] T`` with
-        ``T = [[I, 0], [dquad/ddq, I]]``.
+        (:func:`deviation_jacobian`; :func:`~tracker.estimators.measurement_kernels.
+        carry_expansion`). Each configuration of a batch gets the numbers it gets alone.
         """
         q = np.asarray(q, dtype=float)
         if q.shape[0] == 1:
@@ -122,17 +122,15 @@ class ShapeExpansion:
             JK = self._node(key)[1]
             p, d = q_p - key[0] * self.GRID_MM, q_d - key[1] * self.GRID_MM
             return self.points(q[0])[None], measurement_kernels.carry_expansion(JK, p, d)
+        # Every configuration as the one above: the same numbers, in two compiled calls.
         keys = np.rint(q[:, 1:] / self.GRID_MM).astype(np.int64)
         delta = q[:, 1:] - keys * self.GRID_MM
         distinct, index = np.unique(keys, axis=0, return_inverse=True)
-        JK = np.array([self._node((int(a), int(b)))[1] for a, b in distinct])[index.ravel()]
-        p, d = delta[:, 0], delta[:, 1]
-        T = np.zeros((q.shape[0], 5, 5))
-        T[:] = np.eye(5)
-        T[:, 2, 0], T[:, 3, 0], T[:, 3, 1], T[:, 4, 1] = 2 * p, d, p, 2 * d
-        rows, where = np.unique(q, axis=0, return_inverse=True)
-        c = np.array([self.points(row) for row in rows])[where.ravel()]
-        return c, JK @ T[:, None]
+        nodes = np.array([self._node((int(a), int(b)))[1] for a, b in distinct])
+        JK = measurement_kernels.carry_expansions(
+            nodes, index.ravel().astype(np.intp), delta[:, 0].copy(), delta[:, 1].copy()
+        )
+        return self.catheter.points_of(q), JK
 
 
 # The factors of the quadratic terms of expansion_basis.

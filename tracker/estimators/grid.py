@@ -60,6 +60,7 @@ from tracker.estimators.measurement import (
     velocity_offered,
     wrap,
 )
+from tracker.estimators.per_frame import Estimator
 from tracker.estimators.ukf import check_observation, observation_groups
 from tracker.estimators.ukf_settings import UKFSettings
 from tracker.types import Estimate, Flag, Observation
@@ -69,7 +70,7 @@ DEFAULT_CELLS = 2048
 _TWO_PI = 2.0 * math.pi
 
 
-class GridFilter:
+class GridFilter(Estimator):
     """Point-mass filter of delta_L on ``cells`` cells over [-pi, pi).
 
     Parameters

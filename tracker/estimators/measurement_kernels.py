@@ -6,7 +6,8 @@
 - :func:`horizontal_radius`: how far the present points are from the rotation axis (how
   much a frame can say about the bending plane);
 - :func:`model_error`: the white model-error covariance of every group;
-- :func:`carry_expansion`: the shape's expansion carried from its grid node to the frame.
+- :func:`carry_expansion`, :func:`carry_expansions`: the shape's expansion carried from its grid
+  node to the frame (one configuration, or several with the same numbers).
 
 Each replaces a dozen numpy calls on arrays of a few elements. ``njit(cache=True,
 nogil=True)`` as in :mod:`tracker.estimators.ukf_kernels`; :func:`warm_up` compiles or loads
@@ -130,22 +131,39 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
     return y, R, R_bar, present
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _carry_into(out, JK, p, d):
+    """``[J K]`` (P, 3, 5) of a grid node carried to (p, d) into ``out`` (P, 3, 5)."""
+    for i in range(JK.shape[0]):
+        for a in range(3):
+            row = JK[i, a]
+            out[i, a, 0] = row[0] + 2.0 * p * row[2] + d * row[3]
+            out[i, a, 1] = row[1] + p * row[3] + 2.0 * d * row[4]
+            out[i, a, 2] = row[2]
+            out[i, a, 3] = row[3]
+            out[i, a, 4] = row[4]
+
+
 @numba.njit(cache=True, nogil=True)
 def carry_expansion(JK, p, d):
     """``[J K]`` (P, 3, 5) of a grid node carried to a deviation (p, d) mm from it: J gains
     ``K dquad/ddq`` (columns ``J_p + 2 p K_pp + d K_pd`` and ``J_d + p K_pd + 2 d K_dd``), K
     stays; the product ``[J K] T`` of :meth:`ShapeExpansion.expanded` without its zeros,
     (1, P, 3, 5)."""
-    P = JK.shape[0]
-    out = np.empty((1, P, 3, 5))
-    for i in range(P):
-        for a in range(3):
-            row = JK[i, a]
-            out[0, i, a, 0] = row[0] + 2.0 * p * row[2] + d * row[3]
-            out[0, i, a, 1] = row[1] + p * row[3] + 2.0 * d * row[4]
-            out[0, i, a, 2] = row[2]
-            out[0, i, a, 3] = row[3]
-            out[0, i, a, 4] = row[4]
+    out = np.empty((1,) + JK.shape)
+    _carry_into(out[0], JK, p, d)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def carry_expansions(nodes, node, p, d):
+    """:func:`carry_expansion` of B configurations at once: ``nodes`` (k, P, 3, 5) the grid
+    nodes' ``[J K]``, ``node`` (B,) each configuration's node, ``p``, ``d`` (B,) its offsets
+    from it; (B, P, 3, 5), the same numbers."""
+    B = node.shape[0]
+    out = np.empty((B,) + nodes.shape[1:])
+    for t in range(B):
+        _carry_into(out[t], nodes[node[t]], p[t], d[t])
     return out
 
 
@@ -161,8 +179,14 @@ def warm_up() -> None:
         assemble_positions(c[:, 0], eye[:, 0], c[:, 1:], eye[:, 1:], 1, G, G + 1, has, has)
     model_error(np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1))
     carry_expansion(np.zeros((G, 3, 5)), 0.1, 0.1)
+    carry_expansions(np.zeros((1, G, 3, 5)), np.zeros(1, dtype=np.intp), np.ones(1), np.ones(1))
 
 
 __all__ = [
-    "assemble_positions", "carry_expansion", "horizontal_radius", "model_error", "warm_up"
+    "assemble_positions",
+    "carry_expansion",
+    "carry_expansions",
+    "horizontal_radius",
+    "model_error",
+    "warm_up",
 ]

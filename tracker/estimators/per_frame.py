@@ -18,7 +18,7 @@ lacks (the tip or some markers).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -50,6 +50,11 @@ class Estimator(Protocol):
 
     def step(self, observation: Observation) -> Estimate:
         """Consume one frame and return the estimate."""
+
+    def run(self, observations: Sequence[Observation]) -> list[Estimate]:
+        """Consume frames in order: the estimates of :meth:`step` on each in turn (an
+        estimator may do it faster, with the same results; the UKF does)."""
+        return [self.step(observation) for observation in observations]
 
 
 @dataclass(frozen=True)
@@ -216,7 +221,7 @@ def _invalid(observation: Observation, flags: Flag) -> Estimate:
     )
 
 
-class PerFrameEstimator:
+class PerFrameEstimator(Estimator):
     """One of the paper's per-frame estimators, solved in closed form or by least squares.
 
     Parameters

@@ -29,6 +29,8 @@ The tip, each marker and the velocity are independent groups: a joint marker cov
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,6 +44,7 @@ from tracker.estimators._linalg import (
 )
 from tracker.estimators.deviation import ShapeExpansion
 from tracker.estimators.measurement import ViewGroups, assemble_expanded
+from tracker.estimators.per_frame import Estimator
 from tracker.estimators.ukf_core import FilterBank
 from tracker.estimators.ukf_settings import UKFSettings, gate_threshold
 from tracker.types import Estimate, Flag, Observation
@@ -82,16 +85,7 @@ def observation_groups(
                 f"observation has markers of shape {markers.shape}, the catheter model has "
                 f"{n_markers} markers"
             )
-        markers_cov = np.array(markers_cov, dtype=float)
-        if markers_cov.shape == (3 * n_markers, 3 * n_markers):
-            blocks = markers_cov.reshape(n_markers, 3, n_markers, 3)
-            markers_cov = blocks[np.arange(n_markers), :, np.arange(n_markers), :]
-        elif markers_cov.shape != (n_markers, 3, 3):
-            raise ValueError(
-                f"markers_cov_b must have shape ({n_markers}, 3, 3) or ({3 * n_markers},"
-                f" {3 * n_markers}), got {markers_cov.shape}"
-            )
-        markers, markers_cov = markers[None], markers_cov[None]
+        markers, markers_cov = markers[None], marker_blocks(markers_cov, n_markers)[None]
     else:
         markers = markers_cov = None
     tip = _array(observation.tip_b_mm, (3,))
@@ -129,6 +123,21 @@ def observation_groups(
         if views is not None:
             return views[0], partial or views[1]
     return None, partial
+
+
+def marker_blocks(markers_cov, n_markers: int) -> Array:
+    """The markers' covariances as (n, 3, 3) blocks (a copy), from (n, 3, 3) or a joint
+    (3n, 3n) covariance (its diagonal blocks: the groups are independent)."""
+    markers_cov = np.array(markers_cov, dtype=float)
+    if markers_cov.shape == (3 * n_markers, 3 * n_markers):
+        blocks = markers_cov.reshape(n_markers, 3, n_markers, 3)
+        return blocks[np.arange(n_markers), :, np.arange(n_markers), :]
+    if markers_cov.shape != (n_markers, 3, 3):
+        raise ValueError(
+            f"markers_cov_b must have shape ({n_markers}, 3, 3) or ({3 * n_markers},"
+            f" {3 * n_markers}), got {markers_cov.shape}"
+        )
+    return markers_cov
 
 
 def _view_groups(catheter: Catheter, observation: Observation, q: Array):
@@ -169,6 +178,127 @@ def _view_groups(catheter: Catheter, observation: Observation, q: Array):
     return groups, partial
 
 
+@dataclass(frozen=True)
+class Frames3D:
+    """Observations' 3-D measurement groups assembled at once (N frames), for
+    :meth:`~tracker.estimators.ukf_core.FilterBank.run_3d`.
+
+    ``regular`` (N,) marks the frames assembled here (3-D data with a tip and markers, no
+    single views, finite time and joints); the others hold placeholders and go through
+    :meth:`BendingPlaneUKF.step`. The groups are the positions' (``n_positions``: the tip,
+    then the markers) followed by the velocity's, present where ``has_velocity`` (N,): the
+    groups :func:`observation_groups` makes of each frame, with or without its velocity.
+    """
+
+    regular: Array
+    time_s: Array
+    q: Array
+    partial: Array
+    y: Array
+    c: Array
+    R_bar: Array
+    JK: Array
+    present: Array
+    u_norm_mm_s: Array
+    has_velocity: Array
+    n_positions: int
+
+
+def _stack(values, shape: tuple[int, ...], given: Array | None = None) -> Array:
+    """The values as one float array (M, *shape), NaN where ``given`` is False; ValueError
+    when they are not all of that shape."""
+    if given is not None and not given.all():
+        missing = np.full(shape, np.nan)
+        values = [v if g else missing for v, g in zip(values, given.tolist(), strict=True)]
+    stacked = np.array(values, dtype=float)
+    if stacked.shape != (len(values),) + shape:
+        raise ValueError(f"values of shape {stacked.shape[1:]}, expected {shape}")
+    return stacked
+
+
+def assemble_frames(expansion: ShapeExpansion, observations: Sequence[Observation]
+                    ) -> Frames3D | None:  # fmt: skip
+    """The 3-D groups of every usual frame of ``observations`` at once (vectorised; the
+    same numbers as :func:`observation_groups` frame by frame), or None when none is usual
+    or their arrays do not stack (then every frame goes through the step)."""
+    N = len(observations)
+    n = len(expansion.catheter.marker_arclengths_mm)
+    P = n + 1
+    try:
+        time_s = np.array([o.time_s for o in observations], dtype=float)
+        q = _stack([o.q for o in observations], (3,))
+    except (TypeError, ValueError):
+        return None
+    regular = np.array([
+        not o.views and o.tip_b_mm is not None and o.tip_cov_b is not None
+        and o.markers_b_mm is not None and o.markers_cov_b is not None for o in observations
+    ], dtype=bool).reshape(N) & np.isfinite(time_s) & np.isfinite(q).all(axis=1)  # fmt: skip
+    index = np.flatnonzero(regular)
+    if index.size == 0:
+        return None
+    chosen = [observations[i] for i in index.tolist()]
+    velocity_given = np.array(
+        [o.velocity_b_mm_s is not None and o.velocity_cov_b is not None for o in chosen]
+    )
+    has_v = bool(velocity_given.any())
+    try:
+        tip = _stack([o.tip_b_mm for o in chosen], (3,))
+        tip_cov = _stack([o.tip_cov_b for o in chosen], (3, 3))
+        markers = _stack([o.markers_b_mm for o in chosen], (n, 3))
+        try:
+            markers_cov = _stack([o.markers_cov_b for o in chosen], (n, 3, 3))
+        except ValueError:  # joint covariances among them
+            markers_cov = np.array([marker_blocks(o.markers_cov_b, n) for o in chosen])
+        velocity = velocity_cov = cross = q_dot = None
+        if has_v:
+            velocity = _stack([o.velocity_b_mm_s for o in chosen], (3,), velocity_given)
+            velocity_cov = _stack([o.velocity_cov_b for o in chosen], (3, 3), velocity_given)
+            with_cross = np.array([o.velocity_tip_cov_b is not None for o in chosen])
+            cross = _stack([o.velocity_tip_cov_b for o in chosen], (3, 3), with_cross)
+            with_rate = np.array([o.q_dot is not None for o in chosen])
+            q_dot = _stack([o.q_dot for o in chosen], (3,), with_rate)
+    except ValueError:
+        return None
+    q_chosen = q[index]
+    c, JK = expansion.expanded(q_chosen)
+    # A frame's velocity is decorrelated from its tip where the cross-covariance is usable;
+    # elsewhere it is kept as it is: two assemblies, as each frame would have one of them.
+    usable = np.zeros(index.size, dtype=bool)
+    if has_v:
+        usable = (
+            np.isfinite(cross).all(axis=(1, 2))
+            & np.isfinite(tip).all(axis=1)
+            & np.isfinite(tip_cov).all(axis=(1, 2))
+        )
+    G = P + has_v
+    shape = {"y": (G, 3), "c": (G, 3), "R_bar": (G, 3, 3), "JK": (G, 3, 5), "present": (G,)}
+    arrays = {name: np.zeros((N,) + dims) for name, dims in shape.items()}
+    arrays["present"] = arrays["present"].astype(bool)
+    u_norm = np.zeros(N)
+    for rows, with_cross in ((np.flatnonzero(usable), True), (np.flatnonzero(~usable), False)):
+        if rows.size == 0:
+            continue
+        groups = assemble_expanded(
+            q_chosen[rows], None if q_dot is None else q_dot[rows], c[rows], JK[rows],
+            tip[rows], tip_cov[rows], markers[rows], markers_cov[rows],
+            None if velocity is None else velocity[rows],
+            None if velocity_cov is None else velocity_cov[rows],
+            cross[rows] if with_cross else None,
+        )  # fmt: skip
+        for name in shape:
+            arrays[name][index[rows]] = getattr(groups, name)
+        u_norm[index[rows]] = groups.u_norm_mm_s
+    present = arrays["present"]
+    has_velocity = np.zeros(N, dtype=bool)
+    has_velocity[index] = velocity_given
+    partial = ~present[:, 0] | ~present[:, 1:P].all(axis=1)
+    return Frames3D(
+        regular=regular, time_s=time_s, q=q, partial=partial & regular, y=arrays["y"],
+        c=arrays["c"], R_bar=arrays["R_bar"], JK=arrays["JK"], present=present,
+        u_norm_mm_s=u_norm, has_velocity=has_velocity, n_positions=P,
+    )  # fmt: skip
+
+
 _FLAGS_SEEN: dict[int, Flag] = {}
 
 
@@ -197,7 +327,7 @@ def check_observation(observation: Observation, last_time_s: float) -> tuple[flo
     return t, q
 
 
-class BendingPlaneUKF:
+class BendingPlaneUKF(Estimator):
     """Online estimator of delta_L: a bank of one robust UKF (:mod:`ukf_core`).
 
     Parameters
@@ -279,6 +409,38 @@ class BendingPlaneUKF:
         if time_s is not None:
             self._bank.time_s[0] = float(time_s)
 
+    def run(self, observations: Sequence[Observation]) -> list[Estimate]:
+        """Consume a sequence of frames in order: the estimates :meth:`step` gives frame by
+        frame, to the last bit, at a fraction of the cost for recorded 3-D data.
+
+        The frames' groups are assembled at once (:func:`assemble_frames`) and the usual
+        steps run in one compiled loop (:mod:`tracker.estimators.ukf_run`); every other frame
+        (before the first estimate, with several hypotheses, single views, a step that needs
+        the closed form) goes through :meth:`step`, which raises as it does for one frame.
+        """
+        observations = list(observations)
+        frames = assemble_frames(self._expansion, observations)
+        if frames is None:
+            return [self.step(o) for o in observations]
+        N = len(observations)
+        out = (
+            np.zeros(N), np.zeros(N), np.zeros(N, dtype=np.int64), np.zeros(N),
+            np.zeros(N, dtype=np.int64), np.zeros(N), np.zeros(N, dtype=np.int64),
+            np.zeros((N, 3 * frames.y.shape[1])), np.zeros(N, dtype=np.int64),
+        )  # fmt: skip
+        estimates: list[Estimate] = []
+        k = 0
+        while k < N:
+            if frames.regular[k]:
+                stop = self._bank.run_3d(frames, k, out)
+                estimates += _estimates(frames, out, k, stop)
+                if stop == N:
+                    break
+                k = stop
+            estimates.append(self.step(observations[k]))
+            k += 1
+        return estimates
+
     def step(self, observation: Observation) -> Estimate:
         """Consume one frame: predict to its time, then fuse what it measured.
 
@@ -309,14 +471,38 @@ class BendingPlaneUKF:
         )
 
 
+def _estimates(frames: Frames3D, out: tuple, start: int, stop: int) -> list[Estimate]:
+    """The estimates of frames ``start`` to ``stop`` from :meth:`FilterBank.run_3d`'s
+    outputs, as :meth:`BendingPlaneUKF.step` makes them."""
+    if stop <= start:
+        return []
+    part = slice(start, stop)
+    mean, std, flags, nis, dof, radius, rejected, innovation, shown = out
+    estimates = []
+    for i, (t, q_r, m, s, f, v, d, r, j, length) in enumerate(zip(
+        frames.time_s[part].tolist(), frames.q[part, 0].tolist(), mean[part].tolist(),
+        std[part].tolist(), flags[part].tolist(), nis[part].tolist(), dof[part].tolist(),
+        radius[part].tolist(), rejected[part].tolist(), shown[part].tolist(), strict=True,
+    ), start):  # fmt: skip
+        estimates.append(Estimate(
+            time_s=t, delta_L_rad=m, std_rad=s, q_r_rad=q_r, flags=_flag(f),
+            informative_radius_mm=r, innovation=None if length < 0 else innovation[i, :length],
+            nis=v if math.isfinite(v) else None, nis_dof=d, rejected_outliers=j,
+        ))  # fmt: skip
+    return estimates
+
+
 __all__ = [
     "COVARIANCE_JITTER",
     "COVARIANCE_JITTER_FLOOR",
     "BendingPlaneUKF",
     "CovarianceError",
+    "Frames3D",
     "UKFSettings",
+    "assemble_frames",
     "check_observation",
     "gate_threshold",
+    "marker_blocks",
     "observation_groups",
     "sigma_sqrt",
     "spd_inverse",

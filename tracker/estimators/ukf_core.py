@@ -60,7 +60,14 @@ from functools import lru_cache
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 
-from tracker.estimators import measurement_kernels, ukf_gate, ukf_kernels, ukf_rules, ukf_step
+from tracker.estimators import (
+    measurement_kernels,
+    ukf_gate,
+    ukf_kernels,
+    ukf_rules,
+    ukf_run,
+    ukf_step,
+)
 from tracker.estimators._linalg import (
     COVARIANCE_JITTER,
     COVARIANCE_JITTER_FLOOR,
@@ -104,7 +111,6 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 # The deviation prior given to the predict kernel when the state has no deviation (unused).
 _NO_PRIOR = np.zeros((1, 2))
-
 
 
 @lru_cache(maxsize=16)
@@ -345,6 +351,42 @@ class FilterBank:
         out.rejected = self.rejected.copy()
         return out
 
+    def run_3d(self, frames, start: int, out: tuple) -> int:
+        """Steps of a bank of one through assembled 3-D frames from ``start`` on, while they
+        are usual steps (:func:`~tracker.estimators.ukf_run.run_3d`, whose arguments
+        ``frames`` carries: ``regular``, ``time_s``, ``q``, ``partial``, ``y``, ``c``,
+        ``R_bar``, ``JK``, ``present``, ``u_norm_mm_s``, ``has_velocity``, ``n_positions``);
+        the estimates go to ``out`` (its ``out_*`` arrays, in order).
+
+        Returns the first frame not stepped (its state is the one before it): the caller
+        steps it with :meth:`step`.
+        """
+        if not (self.B == 1 and self._first_only and self.initialised[0]):
+            return start  # the general path: the start, or several hypotheses
+        s = self.settings
+        positions, G = frames.n_positions, frames.y.shape[1]
+        rules, rules_all = self._update_rules(positions, 3), self._update_rules(G, 3)
+        low, high = s.noise_scale_bounds
+        (stop, self.tip_fused, self._first_only, self._single, self._factor_ok,
+         self._factor) = ukf_run.run_3d(
+            start, frames.regular, frames.time_s, frames.q, frames.partial, frames.y,
+            frames.c, frames.R_bar, frames.JK, frames.present, frames.u_norm_mm_s,
+            frames.has_velocity, positions, self.time_s, self.q, self.x, self.P, self.good_x,
+            self.good_P, self.active, self.initialised, self.log_weight, self.mismatch_scale,
+            self.noise_scale, self.rejected, self.bad_run, self.tip_fused, self._first_only,
+            self._single, self._factor_ok, self._factor, s.process_noise_rad2_s,
+            s.rotation_noise_gain_rad, s.joint_error_mm, s.gain_error, s.deviation_length_mm,
+            s.deviation_rate_per_s, s.rate_process_noise_rad2_s3, self.max_variance,
+            s.initial_rate_std_rad_s**2, self._deviation_index, self._rate_index, _FLAGS,
+            self.reacquire_variance, s.joint_error_white_mm, s.velocity_relative_error,
+            self._every, self._slot_0, MISMATCH_DECAY, self.spread, self.Wm, self.Wc,
+            *rules[:4], rules[4], rules_all[4], rules[5], s.estimate_noise,
+            _gate_table(s.gate_probability, 3 * positions), _gate_table(s.gate_probability, 3 * G),
+            s.noise_forgetting, low, high, s.use_velocity, s.velocity_is_finite_difference,
+            *out,
+        )  # fmt: skip
+        return int(stop)
+
     def _finish_fused(self, frame, results, flags, dt, turn, prior, fused_tip, scale, terms
                       ) -> StepResult:  # fmt: skip
         """The rest of a step that :func:`~tracker.estimators.ukf_step.step_3d` updated: the
@@ -393,7 +435,13 @@ class FilterBank:
             else:
                 gates = _no_gates(G)
             rules = self._rules[key] = (
-                p, k, threshold, doubt_threshold(d, p, k), gates, self.min_information, _FLAGS
+                p,
+                k,
+                threshold,
+                doubt_threshold(d, p, k),
+                gates,
+                self.min_information,
+                _FLAGS,
             )
         return rules
 
@@ -501,8 +549,11 @@ class FilterBank:
         bad = informative & ~consistent
         self.bad_run[b[bad]] += 1
         limit = s.reacquire_after_rejections
-        mismatch = bad & bool(limit) & (self.bad_run[b] >= limit) & (
-            fit.std_rad * misfit < s.uninformative_std_rad
+        mismatch = (
+            bad
+            & bool(limit)
+            & (self.bad_run[b] >= limit)
+            & (fit.std_rad * misfit < s.uninformative_std_rad)
         )
         # Restarts of a trial without a usable prior, and mismatch restarts.
         restart = (good & ~spawn[b]) | mismatch
