@@ -297,7 +297,7 @@ def run_methods_on_session(
     metrics, series = {}, {}
     for name in methods:
         estimator = make_estimator(name, session.catheter)
-        estimates = [estimator.step(o) for o in observations]
+        estimates = estimator.run(observations)
         delta = np.array([e.delta_L_rad for e in estimates])
         std = np.array([e.std_rad for e in estimates])
         errors = wrap_angle(delta - session.truth_rad)

@@ -156,7 +156,7 @@ def run_methods(
     results = {}
     for name in names:
         estimator = make_estimator(name, catheter)
-        estimates = tuple(estimator.step(obs) for obs in observations)
+        estimates = tuple(estimator.run(observations))
         results[name] = MethodResult(name, estimates, np.asarray(truth_rad, dtype=float))
     return results
 
@@ -372,7 +372,7 @@ def _run_method(
     with single_blas_thread():
         estimator = make_estimator(name, catheter)
         started = time.perf_counter()
-        estimates = tuple(estimator.step(obs) for obs in observations)
+        estimates = tuple(estimator.run(observations))
         return estimates, time.perf_counter() - started
 
 
