@@ -134,7 +134,11 @@ class Observation:
         """Boolean (n,) of markers present (finite position), empty if there are none."""
         if self.markers_b_mm is None or self.markers_cov_b is None:
             return np.zeros(0, dtype=bool)
-        return np.all(np.isfinite(np.asarray(self.markers_b_mm, dtype=float)), axis=-1)
+        markers = np.asarray(self.markers_b_mm, dtype=float)
+        if markers.ndim != 2:
+            return np.all(np.isfinite(markers), axis=-1)
+        # In floats, as _all_finite: a few rows every frame.
+        return np.array([all(map(math.isfinite, row)) for row in markers.tolist()], dtype=bool)
 
     def markers_joint_covariance(self) -> Array:
         """The joint (3n, 3n) covariance of all markers, mm^2."""
