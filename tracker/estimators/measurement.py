@@ -374,7 +374,7 @@ def assemble_expanded(
         JK_all = np.zeros((B, G, 3, 5))
         JK_all[:, :P] = JK
         JK = JK_all
-        rates = np.full((B, 3), np.nan) if q_dot is None else q_dot
+        rates = np.full((B, 3), np.nan) if q_dot is None else np.asarray(q_dot, dtype=float)
         ok = (
             _finite_rows(velocity, (-1,))
             & _finite_rows(velocity_cov, (-2, -1))
@@ -382,25 +382,18 @@ def assemble_expanded(
         )
         present[:, -1] = ok
         if ok.any():
-            # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot e_z x c + J (q_p_dot, q_d_dot)].
-            c_tip = c[:, 0]
-            u = np.zeros((B, 3))
-            u[:, 0] = -c_tip[:, 1] * rates[:, 0]
-            u[:, 1] = c_tip[:, 0] * rates[:, 0]
-            u = np.nan_to_num(u + (JK[:, 0, :, :2] @ rates[:, 1:, None])[..., 0])
             v_bar, cov_bar, gain = decorrelated_velocity(
                 np.where(ok[:, None], velocity, 0.0),
                 np.where(ok[:, None, None], velocity_cov, _EYE3),
                 None if cross is None else np.where(ok[:, None, None], cross, np.nan),
                 y[:, 0], R[:, 0], present[:, 0],
             )  # fmt: skip
-            K_bar = rotation_invariant(gain)
-            y[ok, -1] = v_bar[ok]
-            R[ok, -1] = cov_bar[ok]
-            R_bar[:, -1] = rotation_invariant(R[:, -1])
-            C[ok, -1] = (u - (K_bar @ c_tip[..., None])[..., 0])[ok]
-            JK[ok, -1] = -(K_bar @ JK[:, 0])[ok]
-            u_norm = np.where(ok, np.linalg.norm(u, axis=-1), 0.0)
+            contiguous = np.ascontiguousarray
+            K_bar, u_norm = measurement_kernels.velocity_group(
+                contiguous(c, dtype=float), contiguous(JK_all[:, :P]), contiguous(rates),
+                contiguous(v_bar), contiguous(cov_bar), contiguous(gain), ok, y, R, R_bar, C,
+                JK_all,
+            )  # fmt: skip
     return FrameGroups(
         q=np.asarray(q, dtype=float), y=y, c=C, R=R, JK=JK, present=present,
         R_bar=R_bar, n_positions=P,

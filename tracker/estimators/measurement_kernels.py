@@ -6,6 +6,7 @@
 - :func:`horizontal_radius`: how far the present points are from the rotation axis (how
   much a frame can say about the bending plane);
 - :func:`model_error`: the white model-error covariance of every group;
+- :func:`velocity_group`: the velocity's group of a frame;
 - :func:`carry_expansion`, :func:`carry_expansions`: the shape's expansion carried from its grid
   node to the frame (one configuration, or several with the same numbers).
 
@@ -131,6 +132,69 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
     return y, R, R_bar, present
 
 
+@numba.njit(cache=True, nogil=True)
+def velocity_group(c, JK, rates, v_bar, cov_bar, gain, ok, y, R, R_bar, C, JK_all):
+    """The velocity group (the last of G) of B trials' frames, in place.
+
+    ``c`` (B, P, 3) and ``JK`` (B, P, 3, 5) are the positions' model vectors and expansion
+    (the tip first), ``rates`` (B, 3) the joint rates, ``v_bar``, ``cov_bar`` (B, 3), (B, 3,
+    3) the velocity decorrelated from the tip with its gain ``gain`` (B, 3, 3), ``ok`` (B,)
+    where the velocity is usable. Fills ``y``, ``R``, ``R_bar``, ``C``, ``JK_all`` at the last
+    group: the measured velocity, its noise and rotation-invariant noise, the model
+    ``u - K_bar c_tip`` with ``u = q_r_dot e_z x c_tip + J_tip (q_p_dot, q_d_dot)`` (the
+    modelled tip velocity) and its expansion ``-K_bar JK_tip``. Returns K_bar (B, 3, 3), the
+    gain's rotation-invariant part, and |u| (B,), 0 where not ok.
+    """
+    B = c.shape[0]
+    g = y.shape[1] - 1
+    K_bar = np.zeros((B, 3, 3))
+    u_norm = np.zeros(B)
+    for t in range(B):
+        A = gain[t]
+        horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
+        skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
+        K_bar[t, 0, 0] = K_bar[t, 1, 1] = horizontal
+        K_bar[t, 0, 1] = skew
+        K_bar[t, 1, 0] = -skew
+        K_bar[t, 2, 2] = A[2, 2]
+        if ok[t]:
+            for a in range(3):
+                y[t, g, a] = v_bar[t, a]
+                for b in range(3):
+                    R[t, g, a, b] = cov_bar[t, a, b]
+        A = R[t, g]
+        horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
+        skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
+        for a in range(3):
+            for b in range(3):
+                R_bar[t, g, a, b] = 0.0
+        R_bar[t, g, 0, 0] = R_bar[t, g, 1, 1] = horizontal
+        R_bar[t, g, 0, 1] = skew
+        R_bar[t, g, 1, 0] = -skew
+        R_bar[t, g, 2, 2] = A[2, 2]
+        if not ok[t]:
+            continue
+        # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot e_z x c + J (q_p_dot, q_d_dot)].
+        u = np.empty(3)
+        u[0] = -c[t, 0, 1] * rates[t, 0]
+        u[1] = c[t, 0, 0] * rates[t, 0]
+        u[2] = 0.0
+        for a in range(3):
+            u[a] += JK[t, 0, a, 0] * rates[t, 1] + JK[t, 0, a, 1] * rates[t, 2]
+        for a in range(3):
+            C[t, g, a] = u[a] - (
+                K_bar[t, a, 0] * c[t, 0, 0] + K_bar[t, a, 1] * c[t, 0, 1]
+                + K_bar[t, a, 2] * c[t, 0, 2]
+            )  # fmt: skip
+            for m in range(5):
+                JK_all[t, g, a, m] = -(
+                    K_bar[t, a, 0] * JK[t, 0, 0, m] + K_bar[t, a, 1] * JK[t, 0, 1, m]
+                    + K_bar[t, a, 2] * JK[t, 0, 2, m]
+                )  # fmt: skip
+        u_norm[t] = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    return K_bar, u_norm
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _carry_into(out, JK, p, d):
     """``[J K]`` (P, 3, 5) of a grid node carried to (p, d) into ``out`` (P, 3, 5)."""
@@ -180,6 +244,12 @@ def warm_up() -> None:
     model_error(np.zeros((1, G, 3, 5)), 0.1, True, c, np.ones(1), 0.1, np.ones(1), np.ones(1))
     carry_expansion(np.zeros((G, 3, 5)), 0.1, 0.1)
     carry_expansions(np.zeros((1, G, 3, 5)), np.zeros(1, dtype=np.intp), np.ones(1), np.ones(1))
+    v, m = np.ones((1, 3)), np.ones((1, 3, 3))
+    velocity_group(
+        c, np.zeros((1, G, 3, 5)), v, v, m, m, np.ones(1, dtype=bool), np.zeros((1, G + 1, 3)),
+        np.zeros((1, G + 1, 3, 3)), np.zeros((1, G + 1, 3, 3)), np.zeros((1, G + 1, 3)),
+        np.zeros((1, G + 1, 3, 5)),
+    )  # fmt: skip
 
 
 __all__ = [
@@ -188,5 +258,6 @@ __all__ = [
     "carry_expansions",
     "horizontal_radius",
     "model_error",
+    "velocity_group",
     "warm_up",
 ]
