@@ -90,6 +90,71 @@ def points_at_powers(
     return points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2)
 
 
+@numba.njit(cache=True, nogil=True)
+def points_and_tip_velocity_at_powers(
+    q, q_dot, size_p, size_d, G, W, column_1, column_2, tip_1, tip_2, cos_delta_2,
+    sin_delta_2,
+):  # fmt: skip
+    """The points c of one configuration q (3,) of a model with power bases, as
+    :func:`points_at_powers` gives them, and the tip's velocity u (3,) at joint rates
+    ``q_dot`` (3,): ``q_r_dot e_z x c_tip + dc_tip/dq_p q_p_dot + dc_tip/dq_d q_d_dot``.
+
+    The derivatives of the bases' rows, then of theta at the nodes, of ``exp(i theta)``
+    (``i dtheta exp(i theta)``) and of its integrals at every limit give those of p_1, p_2
+    and theta_1(L1); ``tip_1``, ``tip_2`` are the tip's limit columns.
+    """
+    q_p, q_d = q[1], q[2]
+    m = size_p + size_d
+    eta = np.empty((1, m))
+    deta = np.zeros(m)
+    eta[0, 0] = 1.0
+    for j in range(1, size_p):
+        eta[0, j] = eta[0, j - 1] * q_p
+        deta[j] = j * eta[0, j - 1]
+    eta[0, size_p] = 1.0
+    for j in range(size_p + 1, m):
+        eta[0, j] = eta[0, j - 1] * q_d
+        deta[j] = (j - size_p) * eta[0, j - 1]
+    points = points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2)[0]
+    N = G.shape[1]
+    J2 = W.shape[1]
+    pairs = np.empty(2 * N)
+    dpairs = np.empty(2 * N)
+    for j in range(N):
+        theta = 0.0
+        dtheta = 0.0
+        for i in range(m):
+            theta += eta[0, i] * G[i, j]
+            dtheta += deta[i] * G[i, j]
+        c, s = math.cos(theta), math.sin(theta)
+        pairs[2 * j], pairs[2 * j + 1] = c, s
+        dpairs[2 * j], dpairs[2 * j + 1] = -dtheta * s, dtheta * c
+    p = np.empty(J2)
+    dp = np.empty(J2)
+    for j in range(J2):
+        t = 0.0
+        dt = 0.0
+        for i in range(2 * N):
+            t += pairs[i] * W[i, j]
+            dt += dpairs[i] * W[i, j]
+        p[j], dp[j] = t, dt
+    c1, s1 = p[J2 - 2], p[J2 - 1]
+    dc1, ds1 = dp[J2 - 2], dp[J2 - 1]  # d(cos, sin)(theta_1(L1)) / dq_p
+    x2, z2 = p[2 * tip_2], p[2 * tip_2 + 1]
+    dx1, dz1 = dp[2 * tip_1], dp[2 * tip_1 + 1]  # d/dq_p on segment 1's columns
+    dx2, dz2 = dp[2 * tip_2], dp[2 * tip_2 + 1]  # d/dq_d on segment 2's
+    cd2, sd2 = cos_delta_2, sin_delta_2
+    dc_p = (dx1 + ds1 * cd2 * x2 + dc1 * z2, 0.0, dz1 - dc1 * cd2 * x2 + ds1 * z2)
+    dc_d = (s1 * cd2 * dx2 + c1 * dz2, sd2 * dx2, -c1 * cd2 * dx2 + s1 * dz2)
+    r_dot, p_dot, d_dot = q_dot[0], q_dot[1], q_dot[2]
+    tip = points.shape[0] - 1
+    u = np.empty(3)
+    u[0] = -r_dot * points[tip, 1] + dc_p[0] * p_dot + dc_d[0] * d_dot
+    u[1] = r_dot * points[tip, 0] + dc_p[1] * p_dot + dc_d[1] * d_dot
+    u[2] = dc_p[2] * p_dot + dc_d[2] * d_dot
+    return points, u
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel once per process."""
@@ -100,6 +165,15 @@ def warm_up() -> None:
         matrix.flags.writeable = False
     points_from_basis(np.zeros((1, 2)), G, W, columns, columns, 1.0, 0.0)
     points_at_powers(np.zeros(1), np.zeros(1), 1, 1, G, W, columns, columns, 1.0, 0.0)
+    # The plan's columns are read-only too when the model passes them whole.
+    fixed = columns.copy()
+    fixed.flags.writeable = False
+    points_from_basis(np.zeros((1, 2)), G, W, fixed, fixed, 1.0, 0.0)
+    points_and_tip_velocity_at_powers(
+        np.zeros(3), np.zeros(3), 1, 1, G, W, fixed, fixed, 0, 0, 1.0, 0.0
+    )
 
 
-__all__ = ["points_at_powers", "points_from_basis", "warm_up"]
+__all__ = [
+    "points_and_tip_velocity_at_powers", "points_at_powers", "points_from_basis", "warm_up"
+]

@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from models._fit_kernels import NOT_FINITE, NOT_POSITIVE_DEFINITE, information_blocks
 from models.catheter import Catheter
 from models.rotation_fit import rotation_fisher_information
 
@@ -42,10 +43,15 @@ def information_from_covariance(covariance: Array) -> Array:
     cov = np.asarray(covariance, dtype=float)
     if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ValueError(f"covariance must be square, got shape {cov.shape}")
-    if cov.shape == (3, 3):
-        return np.array(_information_3x3(cov.tolist()))
-    if cov.ndim == 3 and cov.shape[1:] == (3, 3) and 0 < cov.shape[0] <= _FEW_POINTS:
-        return np.array([_information_3x3(block) for block in cov.tolist()])
+    if cov.shape == (3, 3) or (cov.ndim == 3 and cov.shape[1:] == (3, 3) and cov.shape[0]):
+        # One frame's points: compiled, by the steps of the numpy path below.
+        # A writable C-ordered copy: the kernel's one type.
+        status, information = information_blocks(np.array(cov, dtype=float).reshape(-1, 3, 3))
+        if status == NOT_FINITE:
+            raise ValueError("covariance contains non-finite values")
+        if status == NOT_POSITIVE_DEFINITE:
+            raise ValueError("covariance is not positive definite")
+        return information.reshape(cov.shape)
     if not np.all(np.isfinite(cov)):
         raise ValueError("covariance contains non-finite values")
     sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
@@ -60,45 +66,6 @@ def information_from_covariance(covariance: Array) -> Array:
     else:
         inv_chol = np.linalg.solve(chol, np.broadcast_to(np.eye(cov.shape[-1]), cov.shape))
     return np.swapaxes(inv_chol, -1, -2) @ inv_chol
-
-
-# Up to this many 3 x 3 covariances (one frame's points) are inverted in Python floats: the
-# per-frame estimators invert a few per frame, where numpy's linear-algebra calls cost ten
-# times the arithmetic.
-_FEW_POINTS = 4
-
-
-def _information_3x3(cov: list[list[float]]) -> list[list[float]]:
-    """The inverse of one 3 x 3 covariance, in floats, by the steps of the numpy path:
-    symmetrise, Cholesky factor L, then L^-T L^-1."""
-    (a, b, c), (d, e, f), (g, h, i) = cov
-    if not all(map(math.isfinite, (a, b, c, d, e, f, g, h, i))):
-        raise ValueError("covariance contains non-finite values")
-    s10, s20, s21 = 0.5 * (d + b), 0.5 * (g + c), 0.5 * (h + f)
-    l00 = _cholesky_pivot(a)
-    l10, l20 = s10 / l00, s20 / l00
-    l11 = _cholesky_pivot(e - l10 * l10)
-    l21 = (s21 - l20 * l10) / l11
-    l22 = _cholesky_pivot(i - l20 * l20 - l21 * l21)
-    # M = L^-1 (lower triangular), information = M^T M.
-    m00, m11, m22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
-    m10 = -l10 * m00 / l11
-    m21 = -l21 * m11 / l22
-    m20 = -(l20 * m00 + l21 * m10) / l22
-    w01 = m10 * m11 + m20 * m21
-    w02 = m20 * m22
-    w12 = m21 * m22
-    return [
-        [m00 * m00 + m10 * m10 + m20 * m20, w01, w02],
-        [w01, m11 * m11 + m21 * m21, w12],
-        [w02, w12, m22 * m22],
-    ]
-
-
-def _cholesky_pivot(value: float) -> float:
-    if not value > 0.0:
-        raise ValueError("covariance is not positive definite")
-    return math.sqrt(value)
 
 
 def std_from_information(information: Array | float) -> Array | float:

@@ -21,7 +21,11 @@ from functools import cached_property
 
 import numpy as np
 
-from models._shape_kernels import points_at_powers, points_from_basis
+from models._shape_kernels import (
+    points_and_tip_velocity_at_powers,
+    points_at_powers,
+    points_from_basis,
+)
 from models.modal import Basis, ModalSegment, PowerBasis, SegmentQuadrature
 from models.rotations import rot_y, rot_z, rotate_z, skew
 
@@ -398,6 +402,13 @@ class Catheter:
         derivatives come from one product, ``exp(i theta) @ weights = x + i z``, assembled
         from Python floats.
         """
+        if joint_rates is not None and self._power_sizes is not None:
+            j1, j2 = plan.point_columns[-1]
+            cd2, sd2 = self._delta_2_cos_sin
+            return points_and_tip_velocity_at_powers(
+                np.array(joints), np.array(joint_rates), *self._power_sizes, plan.G_single,
+                plan.weights_single, plan.column_1, plan.column_2, j1, j2, cd2, sd2,
+            )  # fmt: skip
         _, q_p, q_d = joints
         rates = joint_rates is not None
         eta_p, deta_p = _joint_basis_rows(self.proximal.eta, q_p, rates)

@@ -18,12 +18,11 @@ informations stacked as (n, 3, 3) (see :func:`is_per_vector`).
 
 from __future__ import annotations
 
-import cmath
-import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import zgeev
+
+from models._fit_kernels import fit_joint, fit_per_vector
 
 Array = np.ndarray
 
@@ -180,128 +179,21 @@ def fit_rotation_z(y: Array, c: Array, W: Array, newton_steps: int = 3) -> Rotat
 
 
 def _fit_one(y: Array, c: Array, W: Array, newton_steps: int) -> RotationFit:
-    """:func:`fit_rotation_z` for one problem, in Python floats: the same coefficients,
-    candidates and Newton iterations as the batched path, which on one frame spends ten times
-    the arithmetic in numpy's per-call overhead (the per-frame estimators call it every frame).
-    """
-    points, measured = c.tolist(), y.tolist()
-    if len(points) == 1 or is_per_vector(W, len(points)):
-        # Independent vectors: the coefficients are sums of one quadratic form per vector.
-        blocks = W.tolist() if W.ndim == 3 else [W.tolist()]
-        cc = cs = ss = r0_c = r0_s = r0_r0 = 0.0
-        for point, measured_point, block in zip(points, measured, blocks, strict=True):
-            g = _gram_one_vector(point, measured_point, block)
-            cc, cs, ss = cc + g[0], cs + g[1], ss + g[2]
-            r0_c, r0_s, r0_r0 = r0_c + g[3], r0_s + g[4], r0_r0 + g[5]
+    """:func:`fit_rotation_z` for one problem, compiled (:mod:`models._fit_kernels`):
+    the same coefficients, candidates and Newton iterations as the batched path, which on one
+    frame spends ten times the arithmetic in numpy's per-call overhead (the per-frame
+    estimators call it every frame)."""
+    n = c.shape[0]
+    # Writable C-ordered copies: the kernels' one type (a read-only array would compile anew).
+    y, c, W = np.array(y, dtype=float), np.array(c, dtype=float), np.array(W, dtype=float)
+    if n == 1 or is_per_vector(W, n):
+        fit = fit_per_vector(y, c, W.reshape(n, 3, 3), newton_steps, POLISH_STEPS)
     else:
-        # Rows m_c, m_s and r0 = y - m0 (see _basis_vectors); their Gram matrix under W holds
-        # every coefficient: M W M^T = [[cc, cs, .], [., ss, .], [r0 W m_c, r0 W m_s, r0 W r0]].
-        M = np.array(
-            [
-                [v for x, y_, _ in points for v in (x, y_, 0.0)],
-                [v for x, y_, _ in points for v in (-y_, x, 0.0)],
-                [
-                    v
-                    for (_, _, z), (u, w, t) in zip(points, measured, strict=True)
-                    for v in (u, w, t - z)
-                ],
-            ]
-        )
-        (cc, _, _), (cs, ss, _), (r0_c, r0_s, r0_r0) = (M @ W @ M.T).tolist()
-    a1, b1 = -2.0 * r0_c, -2.0 * r0_s
-    a2, b2 = 0.5 * (cc - ss), cs
-    k = r0_r0 + 0.5 * (cc + ss)
-    best_phi, best_cost = math.nan, math.inf
-    for phi in _stationary_candidates_one(a1, b1, a2, b2):
-        phi = _newton_one(phi, a1, b1, a2, b2, newton_steps)
-        cost = _evaluate_one(phi, k, a1, b1, a2, b2)
-        if cost < best_cost or math.isnan(best_phi):
-            best_phi, best_cost = phi, cost
-    best_phi = _newton_one(best_phi, a1, b1, a2, b2, POLISH_STEPS)
-    best_cost = _evaluate_one(best_phi, k, a1, b1, a2, b2)
-    s1, c1 = math.sin(best_phi), math.cos(best_phi)
+        fit = fit_joint(y, c, W, newton_steps, POLISH_STEPS)
+    phi, information, cost, radius = fit
     return RotationFit(
-        phi_rad=(best_phi + math.pi) % (2 * math.pi) - math.pi,
-        fisher_information=s1 * s1 * cc + c1 * c1 * ss - 2 * s1 * c1 * cs,
-        cost=max(best_cost, 0.0),
-        informative_radius_mm=math.sqrt(sum(x * x + y_ * y_ for x, y_, _ in points)),
+        phi_rad=phi, fisher_information=information, cost=cost, informative_radius_mm=radius
     )
-
-
-def _gram_one_vector(
-    c: list[float], y: list[float], W: list[list[float]]
-) -> tuple[float, float, float, float, float, float]:
-    """cc, cs, ss, r0 W m_c, r0 W m_s, r0 W r0 of one vector with its own 3 x 3 information W.
-
-    The Gram matrix of :func:`_fit_one` written out for independent vectors: its numpy calls
-    cost four times this arithmetic on one frame.
-    """
-    (cx, cy, cz), (u, v, t) = c, y
-    (w00, w01, w02), (w10, w11, w12), (w20, w21, w22) = W
-    rz = t - cz
-    # W m_c and W m_s, with m_c = (cx, cy, 0) and m_s = (-cy, cx, 0).
-    a0, a1, a2 = w00 * cx + w01 * cy, w10 * cx + w11 * cy, w20 * cx + w21 * cy
-    b0, b1, b2 = w01 * cx - w00 * cy, w11 * cx - w10 * cy, w21 * cx - w20 * cy
-    return (
-        cx * a0 + cy * a1,
-        cx * a1 - cy * a0,
-        cx * b1 - cy * b0,
-        u * a0 + v * a1 + rz * a2,
-        u * b0 + v * b1 + rz * b2,
-        u * (w00 * u + w01 * v + w02 * rz)
-        + v * (w10 * u + w11 * v + w12 * rz)
-        + rz * (w20 * u + w21 * v + w22 * rz),
-    )
-
-
-def _newton_one(phi: float, a1: float, b1: float, a2: float, b2: float, steps: int) -> float:
-    """:func:`_newton` for one angle, in floats.
-
-    It stops at a fixed point (no step, or a step that leaves phi as it is), from where every
-    further step would repeat it: the result is that of all ``steps``.
-    """
-    for _ in range(steps):
-        s1, c1, s2, c2 = math.sin(phi), math.cos(phi), math.sin(2 * phi), math.cos(2 * phi)
-        d1 = -a1 * s1 + b1 * c1
-        d1 += -2 * a2 * s2 + 2 * b2 * c2
-        d2 = -a1 * c1 - b1 * s1
-        d2 += -4 * a2 * c2 - 4 * b2 * s2
-        if not d2 > 0:
-            break
-        stepped = phi - d1 / d2
-        if stepped == phi:
-            break
-        phi = stepped
-    return phi
-
-
-def _evaluate_one(phi: float, k: float, a1: float, b1: float, a2: float, b2: float) -> float:
-    """:func:`_evaluate` for one angle, in floats."""
-    return (
-        k
-        + a1 * math.cos(phi)
-        + b1 * math.sin(phi)
-        + a2 * math.cos(2 * phi)
-        + b2 * math.sin(2 * phi)
-    )
-
-
-def _stationary_candidates_one(a1: float, b1: float, a2: float, b2: float) -> list[float]:
-    """:func:`_stationary_candidates` for one problem (the repeated Procrustes angles left out)."""
-    lead, half = complex(b2, a2), 0.5 * complex(b1, a1)
-    # The coefficients are (lead, half, 0, conj(half), conj(lead)).
-    scale = max(abs(lead), abs(half))
-    procrustes = math.atan2(-b1, -a1)
-    if not abs(lead) > 1e-12 * (scale if scale > 0 else 1.0):
-        return [procrustes]
-    first_row = [-(x / lead) for x in (half, 0j, half.conjugate(), lead.conjugate())]
-    companion = np.array([first_row, [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], dtype=complex)
-    # LAPACK's zgeev, as np.linalg.eigvals calls it, without numpy's checks around the call
-    # (they cost as much as the 4 x 4 eigenproblem).
-    roots, _, _, info = zgeev(companion, compute_vl=0, compute_vr=0)
-    roots = (roots if info == 0 else np.linalg.eigvals(companion)).tolist()
-    angles = [cmath.phase(z) for z in roots]
-    return [a if math.isfinite(a) else procrustes for a in angles] + [procrustes]
 
 
 def rotation_fisher_information(c: Array, W: Array, phi_rad: Array) -> Array:

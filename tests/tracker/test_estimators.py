@@ -242,7 +242,7 @@ def _weighted_cost(y, c, W, phi):
 @pytest.mark.parametrize("delta_2", DELTA_2)
 @pytest.mark.parametrize("isotropic", [True, False], ids=["isotropic", "anisotropic"])
 def test_one_frame_is_the_batched_closed_form_of_the_same_frames(delta_2, isotropic):
-    """The single-frame path (Python floats) and the batched one (numpy) agree to rounding."""
+    """The single-frame path (compiled) and the batched one (numpy) agree to rounding."""
     catheter = default_catheter(delta_2)
     rng = np.random.default_rng(21)
     n = 40
@@ -282,7 +282,7 @@ def test_one_frame_is_the_batched_closed_form_of_the_same_frames(delta_2, isotro
 def test_rotation_fit_of_one_problem_is_a_batch_of_one_and_information_per_vector_is_joint(
     n_points,
 ):
-    """fit_rotation_z: one problem (floats) = a batch of one (numpy); W per vector = joint W;
+    """fit_rotation_z: one problem (compiled) = a batch of one (numpy); W per vector = joint W;
     and the minimiser is converged (no neighbour has a lower cost)."""
     rng = np.random.default_rng(n_points)
     for _ in range(50):
@@ -308,7 +308,7 @@ def test_rotation_fit_of_one_problem_is_a_batch_of_one_and_information_per_vecto
 
 
 def test_information_of_small_covariances_is_the_inverse():
-    """The per-frame path (Python floats, up to 4 points) equals numpy's inverse, and fails
+    """The per-frame path (compiled, a frame's few blocks) equals numpy's inverse, and fails
     the same way on a covariance that is not finite or not positive definite."""
     rng = np.random.default_rng(4)
     for n in (1, 2, 4, 5):

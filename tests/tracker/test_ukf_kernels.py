@@ -435,6 +435,7 @@ def test_the_expansion_carried_from_its_node_is_the_product_with_the_transport_m
 
 _NO_COMPILE_SCRIPT = """
 import importlib, math, numba, numpy as np
+from dataclasses import replace
 from models.catheter import default_catheter
 from tracker.estimators import make_estimator
 from tracker.types import Observation
@@ -442,14 +443,16 @@ from tracker.types import Observation
 modules = [importlib.import_module(f"tracker.estimators.{name}") for name in (
     "ukf_kernels", "ukf_rules", "ukf_gate", "ukf_step", "measurement_kernels",
     "linalg_kernels", "grid_kernels", "check_kernels")] + [
-    importlib.import_module(f"models.{name}") for name in ("_shape_kernels", "_imaging_kernels")]
+    importlib.import_module(f"models.{name}")
+    for name in ("_shape_kernels", "_imaging_kernels", "_fit_kernels")]
 
 def signatures():
     return {(m.__name__, name): len(k.signatures) for m in modules
             for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
 
 catheter = default_catheter()
-estimators = [make_estimator(name, catheter) for name in ("ukf", "ukf-position", "grid")]
+estimators = [make_estimator(name, catheter) for name in (
+    "ukf", "ukf-position", "grid", "tip-position", "body-positions", "tip-velocity")]
 from models.imaging import default_pinhole_rig
 rig = default_pinhole_rig()
 before = signatures()
@@ -475,6 +478,11 @@ for k in range(40):
         time_s=0.05 * k, q=q, q_dot=np.array([0.2, 0.0, 0.4]), tip_b_mm=measured[0],
         tip_cov_b=cov, markers_b_mm=measured[1:],
         markers_cov_b=np.broadcast_to(cov, (n_markers, 3, 3)).copy())
+    if k % 4 == 2:  # a velocity (fused after a frame without a tip, and by Tip Velocity)
+        observation = replace(observation, velocity_b_mm_s=np.array([1.0, 2.0, 0.5]),
+                              velocity_cov_b=4 * cov, velocity_tip_cov_b=0.5 * cov)
+    if k % 8 == 1:
+        observation = replace(observation, tip_b_mm=np.full(3, np.nan))
     if k % 5 == 1:  # recorded arrays are often read-only
         for value in vars(observation).values():
             if isinstance(value, np.ndarray):

@@ -18,6 +18,7 @@ lacks (the tip or some markers).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
@@ -25,6 +26,8 @@ from typing import Protocol
 import numpy as np
 from scipy.optimize import least_squares
 
+from models import _fit_kernels as fit_kernels
+from models import _shape_kernels as shape_kernels
 from models.bounds import information_from_covariance, std_from_information
 from models.catheter import Catheter, ShapeVectors
 from models.rotation_fit import fit_rotation_z, is_per_vector, rotation_fisher_information
@@ -144,9 +147,14 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
     if kind == "tip":
         if not observation.has_tip():
             return None
-        tip = np.asarray(observation.tip_b_mm, dtype=float)[None]
-        shape = catheter.shape_vectors(observation.q)
-        return build_problem_batch(kind, shape, tip, observation.tip_cov_b)
+        # The model's points [tip, markers...] (compiled): the tip's row is Tip Position's c.
+        q = np.asarray(observation.q, dtype=float)
+        return Problem(
+            y=np.asarray(observation.tip_b_mm, dtype=float)[None],
+            c=catheter.points(q)[:1],
+            covariance=np.asarray(observation.tip_cov_b, dtype=float),
+            q_r_rad=q[0],
+        )
     if kind == "velocity":
         if not observation.has_velocity():
             return None
@@ -172,14 +180,18 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
         markers = np.full((n_markers, 3), np.nan)
         markers_cov = np.broadcast_to(np.eye(3), (n_markers, 3, 3))
     tip, tip_cov = (observation.tip_b_mm, observation.tip_cov_b) if has_tip else (_NAN_3, _EYE_3)
-    points = np.concatenate((np.asarray(tip, dtype=float)[None], markers))
+    points = np.empty((1 + n_markers, 3))
+    points[0], points[1:] = tip, markers
     if markers_cov.shape == (n_markers, 3, 3):
-        covariance = np.concatenate((np.asarray(tip_cov, dtype=float)[None], markers_cov))
+        covariance = np.empty((1 + n_markers, 3, 3))
+        covariance[0], covariance[1:] = tip_cov, markers_cov
     else:
         covariance = np.zeros((3 + 3 * n_markers,) * 2)
         covariance[:3, :3] = tip_cov
         covariance[3:, 3:] = observation.markers_joint_covariance()
-    problem = build_problem_batch(kind, catheter.shape_vectors(observation.q), points, covariance)
+    # The model's points [tip, markers...] (compiled) are Body Positions' c, row for row.
+    q = np.asarray(observation.q, dtype=float)
+    problem = Problem(y=points, c=catheter.points(q), covariance=covariance, q_r_rad=q[0])
     if not (has_tip and present and all(present)):
         rows = np.concatenate(([has_tip], mask))
         if covariance.ndim == 3:
@@ -189,7 +201,7 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
             values = np.repeat(rows, 3)
             covariance = covariance[np.ix_(values, values)]
         problem = Problem(problem.y[rows], problem.c[rows], covariance, problem.q_r_rad, True)
-    if not np.isfinite(problem.covariance).all():
+    if not all(map(math.isfinite, problem.covariance.ravel().tolist())):
         return None
     return problem
 
@@ -235,6 +247,9 @@ class PerFrameEstimator(Estimator):
     NAMES = {"tip": "tip-position", "body": "body-positions", "velocity": "tip-velocity"}
 
     def __init__(self, catheter: Catheter, kind: str, solver: str = "closed-form") -> None:
+        # The model's points and the fit are compiled: loaded (or compiled) now, not in a frame.
+        shape_kernels.warm_up()
+        fit_kernels.warm_up()
         _check_kind(kind)
         if solver not in ("closed-form", "least-squares"):
             raise ValueError(f"unknown solver {solver!r}; use 'closed-form' or 'least-squares'")

@@ -452,7 +452,9 @@ class FilterBank:
         if self._first_only and mask[:, 0].all():
             # mask lies within the active hypotheses, all in slot 0: it is slot 0 of all.
             return self._every, self._slot_0, slice(None)
-        b, h = np.nonzero(mask)
+        # Contiguous copies: np.nonzero's are strided views, a type the kernels would compile
+        # again for in the middle of a run.
+        b, h = (np.ascontiguousarray(index, dtype=np.intp) for index in np.nonzero(mask))
         every = is_every_trial(b, self.B) and not h.any()
         return b, h, slice(None) if every else b
 

@@ -502,6 +502,7 @@ def warm_up() -> None:
                     1.0, flag,
                 )  # fmt: skip
         normalise_single(active, lw)
+        leading(active, lw)
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
 
 
