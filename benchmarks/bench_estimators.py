@@ -1,7 +1,8 @@
 """Per-frame cost of the estimators (prints only; no asserts).
 
 Run from the repository root: ``python benchmarks/bench_estimators.py [--load N]``
-(``--load N``: the robust filters again with N busy processes; ``--robust``: only them).
+(``--load N``: the robust filters and the per-frame estimators again with N busy processes;
+``--robust``: only the robust filters).
 
 - The per-frame estimators (Tip Position, Body Positions, Tip Velocity), closed form, each
   against the paper's least-squares baseline of the same estimator (``*-lsq``) on the same
@@ -187,8 +188,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--load", type=int, default=0, metavar="N",
-        help="time the robust filters again with N busy processes (N = the cores: a hog on"
-        " every core)",
+        help="time the robust filters (and, without --robust, the per-frame estimators) again"
+        " with N busy processes (N = the cores: a hog on every core)",
     )  # fmt: skip
     parser.add_argument("--robust", action="store_true", help="only the robust filters")
     args = parser.parse_args(argv)
@@ -217,6 +218,9 @@ def main(argv=None) -> None:
         with busy_processes(args.load):
             print(f"With {args.load} busy processes (the baseline measured under them too):")
             robust_filters(catheter, baseline())
+            if not args.robust:
+                print()
+                per_frame_table(catheter, sequence)
         print()
     if args.robust:
         return

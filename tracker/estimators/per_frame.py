@@ -158,11 +158,12 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
     if kind == "velocity":
         if not observation.has_velocity():
             return None
-        return build_problem_batch(
-            kind,
-            catheter.shape_vectors(observation.q, observation.q_dot),
-            velocity_b_mm_s=observation.velocity_b_mm_s,
-            velocity_cov_b=observation.velocity_cov_b,
+        shape = catheter.shape_vectors(observation.q, observation.q_dot)
+        return Problem(
+            y=np.asarray(observation.velocity_b_mm_s, dtype=float)[None],
+            c=shape.u_tip_mm_s[None],
+            covariance=np.asarray(observation.velocity_cov_b, dtype=float),
+            q_r_rad=shape.q_r_rad,
         )
     n_markers = len(catheter.marker_arclengths_mm)
     mask = observation.marker_mask()
