@@ -11,7 +11,7 @@ import pytest
 
 from tracker.estimators import check_kernels
 from tracker.estimators.checks import observation_problem
-from tracker.types import Observation
+from tracker.types import Flag, Observation
 
 I3 = np.eye(3)
 GOOD = Observation(
@@ -29,6 +29,10 @@ MARKERS = "markers not 2 finite points within the catheter's reach"
 MARKERS_COV = "marker covariance not positive definite or out of range"
 VELOCITY = "velocity or its covariance unusable"
 CROSS = "velocity-tip cross-covariance not finite"
+DECORRELATED = (
+    "velocity-tip cross-covariance too large: the velocity's covariance given the tip is not"
+    " positive definite"
+)
 NAN3 = np.full(3, np.nan)
 SKEW = I3 + np.triu(np.ones((3, 3)), 1)
 JOINT = 0.01 * np.eye(6)
@@ -72,6 +76,9 @@ CASES = [
     ("velocity of 2", dict(velocity_b_mm_s=np.zeros(2)), VELOCITY),
     ("cross inf", dict(velocity_tip_cov_b=np.full((3, 3), np.inf)), CROSS),
     ("cross of another shape, NaN", dict(velocity_tip_cov_b=np.full((2, 2), np.nan)), CROSS),
+    # Sv - C S^-1 C^T: 4 I - 0.2^2 / 0.01 I = 0 (0.1 I above: 3 I).
+    ("cross too large", dict(velocity_tip_cov_b=0.2 * I3), DECORRELATED),
+    ("cross too large, no tip: not used", dict(velocity_tip_cov_b=0.2 * I3, tip_b_mm=NAN3), None),
     # The rules run in order: the first broken one is named.
     ("q and tip", dict(q=np.array([np.nan, 0.0, 0.0]), tip_b_mm=np.zeros(2)), JOINTS),
     ("tip cov and markers", dict(tip_cov_b=SKEW, markers_b_mm=np.zeros((3, 3))), TIP_COV),
@@ -95,3 +102,27 @@ def test_any_input_is_checked_without_compiling_again():
     for _, change, _ in CASES:
         observation_problem(dataclasses.replace(GOOD, **change), 2)
     assert len(check_kernels.check_buffer.signatures) == 1
+
+
+def test_a_cross_covariance_too_large_is_a_skipped_step_not_an_error():
+    """A velocity whose covariance given the tip is not one (the UKF would raise on it) is a
+    skipped step of every filter, and the next good frame is stepped."""
+    from models.catheter import default_catheter
+    from tracker.estimators import make_estimator
+
+    catheter = default_catheter()
+    n = len(catheter.marker_arclengths_mm)
+    good = dataclasses.replace(
+        GOOD, markers_b_mm=GOOD.markers_b_mm[:n], markers_cov_b=GOOD.markers_cov_b[:n]
+    )
+    bad = dataclasses.replace(good, time_s=2.0, velocity_tip_cov_b=0.2 * I3)
+    for name in ("ukf", "grid"):
+        estimator = make_estimator(name, catheter)
+        estimator.step(good)
+        if name == "ukf":
+            with pytest.raises(ValueError, match="not positive definite"):
+                make_estimator(name, catheter).inner.step(bad)  # unchecked: the UKF raises
+        assert estimator.step(bad).flags & Flag.INVALID_INPUT, name
+        assert estimator.skipped == {DECORRELATED: 1}, name
+        after = estimator.step(dataclasses.replace(good, time_s=3.0))
+        assert not after.flags & Flag.INVALID_INPUT and len(estimator.skipped) == 1, name

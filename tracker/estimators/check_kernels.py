@@ -29,7 +29,7 @@ JOINT_MARKERS_COV = 256
 
 # What check_buffer finds (0: nothing wrong), in the order the checks run.
 OK, BAD_JOINTS, BAD_RATES, BAD_TIP, BAD_TIP_COV, BAD_MARKERS, BAD_MARKERS_COV = range(7)
-BAD_VELOCITY, BAD_CROSS = 7, 8
+BAD_VELOCITY, BAD_CROSS, BAD_DECORRELATED = 7, 8, 9
 
 
 def buffer_size(n_markers: int) -> int:
@@ -121,7 +121,40 @@ def check_buffer(v, n_markers, has, value_limits, rate_limits, max_point, max_sp
             for j in range(velocity + 12, velocity + 21):
                 if not math.isfinite(v[j]):
                     return BAD_CROSS
+            # With the tip, the filters fuse the velocity decorrelated from it: its
+            # covariance given the tip must be a covariance too.
+            if found == 1 and has & HAS_TIP and _point(v, 6, max_point) == 1:
+                if not decorrelated_in_range(v, 9, velocity + 3, velocity + 12, low):
+                    return BAD_DECORRELATED
     return OK
+
+
+@numba.njit(cache=True, nogil=True)
+def decorrelated_in_range(v, tip_cov, velocity_cov, cross, low):
+    """Whether ``Sv - C S^-1 C^T`` (S the tip's covariance, Sv the velocity's, C their
+    cross-covariance: 3x3 matrices at those offsets of v, rows in order), the velocity's
+    covariance given the tip, is positive definite above ``low`` (S is one already)."""
+    S = v[tip_cov : tip_cov + 9].reshape(3, 3)
+    C = v[cross : cross + 9].reshape(3, 3)
+    # S^-1 by its adjugate (S is symmetric positive definite).
+    a, b, c, e, f, i = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
+    A = np.empty((3, 3))
+    A[0, 0], A[0, 1], A[0, 2] = e * i - f * f, c * f - b * i, b * f - c * e
+    A[1, 1], A[1, 2], A[2, 2] = a * i - c * c, b * c - a * f, a * e - b * b
+    A[1, 0], A[2, 0], A[2, 1] = A[0, 1], A[0, 2], A[1, 2]
+    det = a * A[0, 0] + b * A[1, 0] + c * A[2, 0]
+    given = np.empty(9)
+    for r in range(3):
+        for k in range(3):
+            t = 0.0
+            for m in range(3):
+                for n in range(3):
+                    t += C[r, m] * A[m, n] * C[k, n]
+            given[3 * r + k] = v[velocity_cov + 3 * r + k] - t / det
+    for r in range(3):
+        for k in range(r + 1, 3):
+            given[3 * r + k] = given[3 * k + r] = 0.5 * (given[3 * r + k] + given[3 * k + r])
+    return symmetric_in_range_3(given, 0, low, math.inf)
 
 
 @functools.cache

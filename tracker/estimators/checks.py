@@ -12,7 +12,9 @@ once for all of them, before the estimator sees it:
 - points: the tip, the markers (of the catheter's count), the velocity and single-view points:
   finite where present (NaN rows mean "not found") and within physical ranges.
 - covariances of the points present: symmetric, positive definite, every variance between
-  :data:`MIN_VARIANCE_MM2` and :data:`MAX_VARIANCE_MM2` (image points: the cameras' limits).
+  :data:`MIN_VARIANCE_MM2` and :data:`MAX_VARIANCE_MM2` (image points: the cameras' limits);
+  with a tip, the velocity's covariance given the tip (what the filters fuse,
+  ``Sv - C S^-1 C^T`` with the cross-covariance C) positive definite too.
 
 A skipped step of a filter returns the last estimate held, flagged ``INVALID_INPUT | HELD |
 NO_MEASUREMENT`` (NaN before the first estimate; a per-frame estimator gives NaN): the
@@ -105,6 +107,8 @@ _PROBLEMS = {
     kernels.BAD_MARKERS_COV: "marker covariance not positive definite or out of range",
     kernels.BAD_VELOCITY: "velocity or its covariance unusable",
     kernels.BAD_CROSS: "velocity-tip cross-covariance not finite",
+    kernels.BAD_DECORRELATED: "velocity-tip cross-covariance too large: the velocity's"
+    " covariance given the tip is not positive definite",
 }
 
 
