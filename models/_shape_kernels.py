@@ -70,6 +70,18 @@ def points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2):
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _power_rows(eta, q_p, q_d, size_p, size_d):
+    """``eta`` (size_p + size_d,): the power bases' rows ``[1, q_p, q_p^2, ..., 1, q_d, ...]``
+    by running products, as the model makes them."""
+    eta[0] = 1.0
+    for j in range(1, size_p):
+        eta[j] = eta[j - 1] * q_p
+    eta[size_p] = 1.0
+    for j in range(size_p + 1, size_p + size_d):
+        eta[j] = eta[j - 1] * q_d
+
+
 @numba.njit(cache=True, nogil=True)
 def points_at_powers(
     q_p, q_d, size_p, size_d, G, W, column_1, column_2, cos_delta_2, sin_delta_2
@@ -81,12 +93,7 @@ def points_at_powers(
     k = q_p.shape[0]
     eta = np.empty((k, size_p + size_d))
     for r in range(k):
-        eta[r, 0] = 1.0
-        for j in range(1, size_p):
-            eta[r, j] = eta[r, j - 1] * q_p[r]
-        eta[r, size_p] = 1.0
-        for j in range(size_p + 1, size_p + size_d):
-            eta[r, j] = eta[r, j - 1] * q_d[r]
+        _power_rows(eta[r], q_p[r], q_d[r], size_p, size_d)
     return points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2)
 
 
@@ -103,17 +110,14 @@ def points_and_tip_velocity_at_powers(
     (``i dtheta exp(i theta)``) and of its integrals at every limit give those of p_1, p_2
     and theta_1(L1); ``tip_1``, ``tip_2`` are the tip's limit columns.
     """
-    q_p, q_d = q[1], q[2]
     m = size_p + size_d
     eta = np.empty((1, m))
+    _power_rows(eta[0], q[1], q[2], size_p, size_d)
+    # Their derivatives: d(q^j)/dq = j q^(j - 1).
     deta = np.zeros(m)
-    eta[0, 0] = 1.0
     for j in range(1, size_p):
-        eta[0, j] = eta[0, j - 1] * q_p
         deta[j] = j * eta[0, j - 1]
-    eta[0, size_p] = 1.0
     for j in range(size_p + 1, m):
-        eta[0, j] = eta[0, j - 1] * q_d
         deta[j] = (j - size_p) * eta[0, j - 1]
     points = points_from_basis(eta, G, W, column_1, column_2, cos_delta_2, sin_delta_2)[0]
     N = G.shape[1]

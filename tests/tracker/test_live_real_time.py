@@ -290,7 +290,7 @@ class FlakyEstimator:
         self.calls = 0
 
     def reset(self):
-        pass
+        """It keeps no state."""
 
     def step(self, observation):
         self.calls += 1

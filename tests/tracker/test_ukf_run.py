@@ -53,13 +53,16 @@ def assert_same_state(a: BendingPlaneUKF, b: BendingPlaneUKF):
 
 @pytest.fixture
 def compiled_count(monkeypatch):
-    """How many frames the compiled loop stepped."""
-    count = [0]
+    """How many frames the compiled loop stepped, and how often it handed a frame back to
+    the general path after stepping some (its state put back: the path the run resumes
+    from)."""
+    count = [0, 0]
     real = FilterBank.run_3d
 
     def counted(self, frames, start, out):
         stop = real(self, frames, start, out)
         count[0] += stop - start
+        count[1] += start < stop < frames.regular.size
         return stop
 
     monkeypatch.setattr(FilterBank, "run_3d", counted)
@@ -86,6 +89,7 @@ def test_a_run_is_the_steps_one_by_one(name, compiled_count):
     # restarts from its closed form: none of them, test_ukf_step.py).
     if name != "large process noise":
         assert compiled_count[0] > 0.5 * total, (compiled_count[0], total)
+        assert compiled_count[1] > 0, "no frame handed back to the general path mid-run"
 
 
 def lab_sequence(catheter, seed=3):
@@ -120,6 +124,7 @@ def test_a_run_through_what_a_lab_feeds_is_the_steps(compiled_count):
         assert_same([stepped.step(o) for o in frames], ran.run(frames))
         assert_same_state(stepped, ran)
     assert compiled_count[0] > len(frames)  # of the two runs
+    assert compiled_count[1] > 0  # the odd frames went the general path between compiled ones
 
 
 def test_a_run_raises_where_the_steps_raise():

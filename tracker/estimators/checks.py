@@ -301,6 +301,27 @@ class CheckedEstimator:
         self.skipped["clock restarted"] = self.skipped.get("clock restarted", 0) + 1
         return True
 
+    def _problem(self, observation: Observation) -> str | None:
+        """Why the wrapped estimator must not see ``observation`` (None: it may), the time
+        taken as the last accepted one when it may. A restarted clock resets the estimator
+        here (:meth:`_time_ok`)."""
+        t = float(observation.time_s)
+        if not math.isfinite(t):
+            return "time not finite"
+        problem = observation_problem(observation, self.n_markers, self._buffer)
+        if problem is not None or not self.check_time:  # a per-frame estimator: no order
+            return problem
+        if not self._time_ok(t):
+            return "time not after the last frame or too far ahead"
+        self._last_time_s = t
+        return None
+
+    def _accepted(self, estimate: Estimate) -> Estimate:
+        """Keep a filter's valid estimate: a skipped step holds it."""
+        if self.check_time and math.isfinite(estimate.delta_L_rad + estimate.std_rad):
+            self._last = estimate
+        return estimate
+
     def run(self, observations: Sequence[Observation]) -> list[Estimate]:
         """The steps of frames in order, as :meth:`step` on each in turn gives them: the
         checks frame by frame, the accepted frames through the wrapped estimator's ``run``
@@ -312,26 +333,15 @@ class CheckedEstimator:
         def flush() -> None:
             if not accepted:
                 return
-            for i, estimate in zip(
-                accepted, self.inner.run([observations[i] for i in accepted]), strict=True
-            ):
-                estimates[i] = estimate
-                if self.check_time and estimate.valid:  # held by a skipped step of a filter
-                    self._last = estimate
+            frames = [observations[i] for i in accepted]
+            for i, estimate in zip(accepted, self.inner.run(frames), strict=True):
+                estimates[i] = self._accepted(estimate)
             accepted.clear()
 
         for i, observation in enumerate(observations):
-            t = float(observation.time_s)
-            problem = "time not finite" if not math.isfinite(t) else None
-            if problem is None:
-                problem = observation_problem(observation, self.n_markers, self._buffer)
-            if problem is None and self.check_time:
-                if self._rejected_times:  # a clock restart resets the estimator: in order
-                    flush()
-                if not self._time_ok(t):
-                    problem = "time not after the last frame or too far ahead"
-                else:
-                    self._last_time_s = t
+            if self._rejected_times:  # a clock restart resets the estimator: after these
+                flush()
+            problem = self._problem(observation)
             if problem is None:
                 accepted.append(i)
             else:
@@ -342,18 +352,7 @@ class CheckedEstimator:
 
     def step(self, observation: Observation) -> Estimate:
         """The wrapped estimator's step, or a flagged, skipped step for a bad observation."""
-        t = float(observation.time_s)
-        if not math.isfinite(t):
-            return self._skip(observation, "time not finite")
-        problem = observation_problem(observation, self.n_markers, self._buffer)
+        problem = self._problem(observation)
         if problem is not None:
             return self._skip(observation, problem)
-        if not self.check_time:  # a per-frame estimator: nothing carried from step to step
-            return self.inner.step(observation)
-        if not self._time_ok(t):
-            return self._skip(observation, "time not after the last frame or too far ahead")
-        estimate = self.inner.step(observation)
-        self._last_time_s = t
-        if math.isfinite(estimate.delta_L_rad) and math.isfinite(estimate.std_rad):
-            self._last = estimate
-        return estimate
+        return self._accepted(self.inner.step(observation))

@@ -67,13 +67,6 @@ from tracker.estimators import measurement_kernels, ukf_kernels
 
 Array = np.ndarray
 _EYE3 = np.eye(3)
-# rotation_invariant as a linear map of the nine entries (row-major) of a 3x3 matrix: the
-# halves are exact, so its products give the same numbers as the entry-wise formula.
-_ROTATION_AVERAGE = np.zeros((9, 9))
-_ROTATION_AVERAGE[[0, 4, 0, 4], [0, 0, 4, 4]] = 0.5  # (A_xx + A_yy) / 2 on both
-_ROTATION_AVERAGE[[3, 1, 1, 3], [3, 3, 1, 1]] = [0.5, -0.5, 0.5, -0.5]  # the skew part
-_ROTATION_AVERAGE[8, 8] = 1.0
-
 # Angles at which a frame's cost is evaluated before Newton's method polishes the minimum.
 _FIT_ANGLES = np.linspace(-np.pi, np.pi, 64, endpoint=False)
 _FIT_TABLE = np.stack(
@@ -114,7 +107,8 @@ class FrameGroups:
         Model vectors at delta_1 = 0: the model predicts ``Rz(q_r + delta_L) c``.
     R, R_bar : arrays, shape (B, G, 3, 3)
         Segmentation-noise covariance of each group in {B}, and its rotation-invariant part
-        (:func:`rotation_invariant`, the noise both filters use).
+        (``diag((R_xx + R_yy) / 2, (R_xx + R_yy) / 2, R_zz)`` plus the antisymmetric horizontal
+        part, the noise both filters use).
     JK : array, shape (B, G, 3, 5)
         ``[J K]``, the shape's expansion in the deviation, ``c + JK expansion_basis(dq)``
         (:class:`~tracker.estimators.deviation.ShapeExpansion`; the velocity's is minus the
@@ -299,16 +293,6 @@ def offered_velocity(frame, settings, tip_fused: Array):
     if not isinstance(frame, FrameGroups) or not frame.has_velocity_group:
         return frame
     return frame.without_velocity(~velocity_offered(settings, tip_fused))
-
-
-def rotation_invariant(A: Array) -> Array:
-    """The part of finite 3x3 matrices (..., 3, 3) invariant under rotations about z.
-
-    ``diag((A_xx + A_yy) / 2, (A_xx + A_yy) / 2, A_zz)`` plus the antisymmetric horizontal
-    part (zero for a covariance). One product with a fixed 9 x 9 map (a non-finite entry
-    anywhere makes the whole result NaN).
-    """
-    return (A.reshape(A.shape[:-2] + (9,)) @ _ROTATION_AVERAGE).reshape(A.shape)
 
 
 # Placeholders of absent tips or markers for the assembling kernel (one trial, unused).
@@ -642,7 +626,6 @@ __all__ = [
     "velocity_offered",
     "model_error_covariance",
     "process_variance",
-    "rotation_invariant",
     "trig_table",
     "wrap",
 ]

@@ -66,6 +66,22 @@ def model_error(JK, white_mm, has_velocity, c, u_norm, relative_error, process_v
     return M
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rotation_invariant_into(out, A):
+    """``out`` (3, 3): the part of A (3, 3) invariant under rotations about z,
+    ``diag((A_xx + A_yy) / 2, (A_xx + A_yy) / 2, A_zz)`` plus the antisymmetric horizontal
+    part (zero for a covariance), every other entry 0."""
+    horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
+    skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = 0.0
+    out[0, 0] = out[1, 1] = horizontal
+    out[0, 1] = skew
+    out[1, 0] = -skew
+    out[2, 2] = A[2, 2]
+
+
 @numba.njit(cache=True, nogil=True)
 def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has_markers):
     """The position groups of B trials' frames: each group's vector and covariance, its
@@ -86,7 +102,7 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
     y : array (B, G, 3), R, R_bar : arrays (B, G, 3, 3), present : bool array (B, G)
         Absent groups hold the placeholders 0 and I. R_bar is R's part invariant under
         rotations about z: ``diag((R_xx + R_yy) / 2, (R_xx + R_yy) / 2, R_zz)`` plus the
-        antisymmetric horizontal part (``rotation_invariant``).
+        antisymmetric horizontal part (:func:`_rotation_invariant_into`).
     """
     y = np.zeros((B, G, 3))
     R = np.zeros((B, G, 3, 3))
@@ -122,13 +138,7 @@ def assemble_positions(tip, tip_cov, markers, markers_cov, B, P, G, has_tip, has
                     y[t, g, a] = 0.0
                     for b in range(3):
                         R[t, g, a, b] = 1.0 if a == b else 0.0
-            A = R[t, g]
-            horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
-            skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
-            R_bar[t, g, 0, 0] = R_bar[t, g, 1, 1] = horizontal
-            R_bar[t, g, 0, 1] = skew
-            R_bar[t, g, 1, 0] = -skew
-            R_bar[t, g, 2, 2] = A[2, 2]
+            _rotation_invariant_into(R_bar[t, g], R[t, g])
     return y, R, R_bar, present
 
 
@@ -150,28 +160,13 @@ def velocity_group(c, JK, rates, v_bar, cov_bar, gain, ok, y, R, R_bar, C, JK_al
     K_bar = np.zeros((B, 3, 3))
     u_norm = np.zeros(B)
     for t in range(B):
-        A = gain[t]
-        horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
-        skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
-        K_bar[t, 0, 0] = K_bar[t, 1, 1] = horizontal
-        K_bar[t, 0, 1] = skew
-        K_bar[t, 1, 0] = -skew
-        K_bar[t, 2, 2] = A[2, 2]
+        _rotation_invariant_into(K_bar[t], gain[t])
         if ok[t]:
             for a in range(3):
                 y[t, g, a] = v_bar[t, a]
                 for b in range(3):
                     R[t, g, a, b] = cov_bar[t, a, b]
-        A = R[t, g]
-        horizontal = 0.5 * A[0, 0] + 0.5 * A[1, 1]
-        skew = 0.5 * A[0, 1] - 0.5 * A[1, 0]
-        for a in range(3):
-            for b in range(3):
-                R_bar[t, g, a, b] = 0.0
-        R_bar[t, g, 0, 0] = R_bar[t, g, 1, 1] = horizontal
-        R_bar[t, g, 0, 1] = skew
-        R_bar[t, g, 1, 0] = -skew
-        R_bar[t, g, 2, 2] = A[2, 2]
+        _rotation_invariant_into(R_bar[t, g], R[t, g])
         if not ok[t]:
             continue
         # d/dt [Rz(delta_1) c] = Rz(delta_1) [q_r_dot e_z x c + J (q_p_dot, q_d_dot)].

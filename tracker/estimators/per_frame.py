@@ -7,13 +7,16 @@ Each of the paper's three estimators (docs/design.md section 5) exists two ways:
 - ``least-squares``: the paper's baseline, scipy's ``least_squares`` on the unweighted
   residuals of the full kinematic model, started at delta_L = 0 as the paper states it.
 
-Every estimator, the UKF included, has ``name``, ``reset()`` and ``step(observation) ->
-Estimate``; :func:`make_estimator` builds any of them by name.
+Every estimator, the UKF included, has ``name``, ``reset()``, ``step(observation) ->
+Estimate`` and ``run(observations)`` (:class:`Estimator`); :func:`make_estimator` builds any
+of them by name.
 
-The rotation problem of a data kind is built in one place: :func:`build_problem_batch` from
-arrays of complete frames (the sensitivity studies: all trials at once), which
-:func:`build_problem` also uses for one :class:`Observation`, after dropping what the frame
-lacks (the tip or some markers).
+The rotation problem of a data kind is built in one place (its model vectors by
+:func:`kind_vectors`, its measurements and covariance by :func:`build_problem_batch`'s rule),
+from arrays of complete frames (the sensitivity studies: all trials at once) or, by
+:func:`build_problem`, from one :class:`Observation`, after dropping what the frame lacks
+(the tip or some markers); one frame's model vectors come from the model's points in one
+compiled call.
 """
 
 from __future__ import annotations
@@ -89,13 +92,24 @@ def model_vectors(kind: str, shape: ShapeVectors) -> Array:
     rates).
     """
     _check_kind(kind)
-    if kind == "tip":
-        return shape.c_tip_mm[..., None, :]
     if kind == "body":
-        return np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
-    if shape.u_tip_mm_s is None:
+        points = np.concatenate([shape.c_tip_mm[..., None, :], shape.c_markers_mm], axis=-2)
+    else:
+        points = shape.c_tip_mm[..., None, :]
+    return kind_vectors(kind, points, shape.u_tip_mm_s)
+
+
+def kind_vectors(kind: str, points: Array | None, u: Array | None) -> Array:
+    """The model vectors c (..., n, 3) of a data kind from the model's points (..., P, 3),
+    tip first (as :meth:`~models.catheter.Catheter.points` gives them; Tip Position reads the
+    first row only), and the tip velocity u (..., 3) (Tip Velocity)."""
+    if kind == "tip":
+        return points[..., :1, :]
+    if kind == "body":
+        return points
+    if u is None:
         raise ValueError("Tip Velocity needs shape vectors made with joint rates")
-    return shape.u_tip_mm_s[..., None, :]
+    return u[..., None, :]
 
 
 def build_problem_batch(
@@ -121,7 +135,15 @@ def build_problem_batch(
     velocity_b_mm_s, velocity_cov_b : arrays, shapes (..., 3), (..., 3, 3)
         Measured tip velocity and its covariance (Tip Velocity only), mm/s, mm^2/s^2.
     """
-    c = model_vectors(kind, shape)
+    return _problem(
+        kind, model_vectors(kind, shape), shape.q_r_rad, points_b_mm, points_cov_b,
+        velocity_b_mm_s, velocity_cov_b,
+    )  # fmt: skip
+
+
+def _problem(kind, c, q_r_rad, points_b_mm, points_cov_b, velocity_b_mm_s, velocity_cov_b):
+    """The rotation problems of a data kind with its model vectors c (see
+    :func:`build_problem_batch`)."""
     if kind == "velocity":
         y = np.asarray(velocity_b_mm_s, dtype=float)[..., None, :]
         covariance = np.asarray(velocity_cov_b, dtype=float)
@@ -134,7 +156,7 @@ def build_problem_batch(
             covariance = covariance[..., 0, :, :] if per_point else covariance[..., :3, :3]
     if c.shape != y.shape:
         c = np.broadcast_to(c, np.broadcast_shapes(c.shape, y.shape))
-    return Problem(y=y, c=c, covariance=covariance, q_r_rad=shape.q_r_rad)
+    return Problem(y=y, c=c, covariance=covariance, q_r_rad=q_r_rad)
 
 
 def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Problem | None:
@@ -147,23 +169,19 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
     if kind == "tip":
         if not observation.has_tip():
             return None
-        # The model's points [tip, markers...] (compiled): the tip's row is Tip Position's c.
+        # The model's points [tip, markers...] in one compiled call, not the shape vectors.
         q = np.asarray(observation.q, dtype=float)
-        return Problem(
-            y=np.asarray(observation.tip_b_mm, dtype=float)[None],
-            c=catheter.points(q)[:1],
-            covariance=np.asarray(observation.tip_cov_b, dtype=float),
-            q_r_rad=q[0],
-        )
+        c = kind_vectors(kind, catheter.points(q), None)
+        tip = np.asarray(observation.tip_b_mm, dtype=float)[None]
+        return _problem(kind, c, q[0], tip, observation.tip_cov_b, None, None)
     if kind == "velocity":
         if not observation.has_velocity():
             return None
-        shape = catheter.shape_vectors(observation.q, observation.q_dot)
-        return Problem(
-            y=np.asarray(observation.velocity_b_mm_s, dtype=float)[None],
-            c=shape.u_tip_mm_s[None],
-            covariance=np.asarray(observation.velocity_cov_b, dtype=float),
-            q_r_rad=shape.q_r_rad,
+        return build_problem_batch(
+            kind,
+            catheter.shape_vectors(observation.q, observation.q_dot),
+            velocity_b_mm_s=observation.velocity_b_mm_s,
+            velocity_cov_b=observation.velocity_cov_b,
         )
     n_markers = len(catheter.marker_arclengths_mm)
     mask = observation.marker_mask()
@@ -190,9 +208,10 @@ def build_problem(kind: str, observation: Observation, catheter: Catheter) -> Pr
         covariance = np.zeros((3 + 3 * n_markers,) * 2)
         covariance[:3, :3] = tip_cov
         covariance[3:, 3:] = observation.markers_joint_covariance()
-    # The model's points [tip, markers...] (compiled) are Body Positions' c, row for row.
+    # The model's points [tip, markers...] in one compiled call, not the shape vectors.
     q = np.asarray(observation.q, dtype=float)
-    problem = Problem(y=points, c=catheter.points(q), covariance=covariance, q_r_rad=q[0])
+    c = kind_vectors(kind, catheter.points(q), None)
+    problem = _problem(kind, c, q[0], points, covariance, None, None)
     if not (has_tip and present and all(present)):
         rows = np.concatenate(([has_tip], mask))
         if covariance.ndim == 3:

@@ -21,8 +21,23 @@ import math
 
 import numba
 import numpy as np
+from numba import literal_unroll
 
 from tracker.estimators.ukf_step import FINISHED_UPDATE, step_3d
+
+
+@numba.njit(cache=True, nogil=True)
+def _keep(kept):
+    """Copy each state array of ``kept`` ((array, copy) pairs) into its copy."""
+    for pair in literal_unroll(kept):
+        pair[1][...] = pair[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _put_back(kept):
+    """Copy each copy of ``kept`` ((array, copy) pairs) back into its state array."""
+    for pair in literal_unroll(kept):
+        pair[0][...] = pair[1]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -60,10 +75,15 @@ def run_3d(
     N = times.shape[0]
     B, H, n = x.shape
     G_all = y_all.shape[1]
-    saved = (
-        last_time_s.copy(), last_q.copy(), x.copy(), P.copy(), good_x.copy(), good_P.copy(),
-        active.copy(), initialised.copy(), log_weight.copy(), mismatch_scale.copy(),
-        noise_scale.copy(), rejected.copy(), bad_run.copy(),
+    # The bank's state, each array with a copy of itself: put back as it was before a frame
+    # that needs the general path.
+    kept = (
+        (last_time_s, last_time_s.copy()), (last_q, last_q.copy()), (x, x.copy()),
+        (P, P.copy()), (good_x, good_x.copy()), (good_P, good_P.copy()),
+        (active, active.copy()), (initialised, initialised.copy()),
+        (log_weight, log_weight.copy()), (mismatch_scale, mismatch_scale.copy()),
+        (noise_scale, noise_scale.copy()), (rejected, rejected.copy()),
+        (bad_run, bad_run.copy()),
     )  # fmt: skip
     for k in range(start, N):
         if not regular[k]:
@@ -77,20 +97,7 @@ def run_3d(
         present = present_all[k : k + 1, :G].copy()
         if not present.any():
             return k, tip_fused, first_only, single, factor_ok, factor
-        # The state before the frame, put back if the frame needs the general path.
-        saved[0][:] = last_time_s
-        saved[1][:] = last_q
-        saved[2][:] = x
-        saved[3][:] = P
-        saved[4][:] = good_x
-        saved[5][:] = good_P
-        saved[6][:] = active
-        saved[7][:] = initialised
-        saved[8][:] = log_weight
-        saved[9][:] = mismatch_scale
-        saved[10][:] = noise_scale
-        saved[11][:] = rejected
-        saved[12][:] = bad_run
+        _keep(kept)
         u = np.zeros(1)
         if with_velocity:
             u[0] = u_all[k]
@@ -113,19 +120,7 @@ def run_3d(
             forgetting, low, high, initialised,
         )  # fmt: skip
         if result[0] != FINISHED_UPDATE or not result[27]:
-            last_time_s[:] = saved[0]
-            last_q[:] = saved[1]
-            x[:] = saved[2]
-            P[:] = saved[3]
-            good_x[:] = saved[4]
-            good_P[:] = saved[5]
-            active[:] = saved[6]
-            initialised[:] = saved[7]
-            log_weight[:] = saved[8]
-            mismatch_scale[:] = saved[9]
-            noise_scale[:] = saved[10]
-            rejected[:] = saved[11]
-            bad_run[:] = saved[12]
+            _put_back(kept)
             return k, tip_fused, first_only, single, factor_ok, factor
         # The report, as the bank's step gives it (ukf_core.FilterBank._finish_fused).
         flags, radius, shown, row = result[1], result[12], result[19], result[23]
