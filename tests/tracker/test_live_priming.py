@@ -4,6 +4,7 @@ frame, the frame pace and the priming just before a frame is due (tracker/live/p
 from __future__ import annotations
 
 import math
+import os
 import socket
 import types
 
@@ -196,25 +197,30 @@ def test_without_a_pace_or_with_priming_off_the_loop_never_primes(session, joint
 
 
 class SettingsSink(MemorySink):
-    """Records OpenCV's thread count on the loop's thread."""
+    """Records OpenCV's thread count and the processors of the loop's thread."""
 
     name = "settings"
 
     def __init__(self):
         super().__init__()
         self.cv_threads = []
+        self.cpus = []
 
     def handle(self, *args, **kwargs):
         self.cv_threads.append(cv2.getNumThreads())
+        if hasattr(os, "sched_getaffinity"):
+            self.cpus.append(os.sched_getaffinity(0))
         super().handle(*args, **kwargs)
 
 
 def test_a_run_takes_opencv_to_one_thread_and_leaves_the_sinks_free(session, joints):
-    """During the run OpenCV uses one thread; afterwards its setting is back, and the sinks
-    are not left paused by a priming for a frame that never came."""
+    """During the run OpenCV uses one thread and the loop's thread a processor of its own
+    (two or more allowed); afterwards both are back, and the sinks are not left paused by a
+    priming for a frame that never came."""
     segmenter, sink = StandInSegmenter(session.frames), SettingsSink()
     tracker = loop_of(session, joints, segmenter, sink)
     before = cv2.getNumThreads()
+    cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     joints.send_until(session.frames[4].time_s + 0.002)
 
     def source():
@@ -226,6 +232,9 @@ def test_a_run_takes_opencv_to_one_thread_and_leaves_the_sinks_free(session, joi
     tracker.run(source(), handle_signals=False)
     assert sink.cv_threads == [1] * 4
     assert cv2.getNumThreads() == before
+    if cpus is not None:
+        assert sink.cpus == [{max(cpus)} if len(cpus) > 1 else cpus] * 4
+        assert os.sched_getaffinity(0) == cpus
     assert tracker.idle.is_set()
 
 
@@ -287,6 +296,72 @@ def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, join
     tracker.close()
 
 
+class SettlingSegmenter(StandInSegmenter):
+    """Keeps what the loop asks of it, in order, in ``calls`` (shared with the sink)."""
+
+    def __init__(self, frames, calls):
+        super().__init__(frames)
+        self.calls = calls
+
+    def segment(self, images, predicted_px=None, settle=True):
+        self.calls.append(f"segment, settle={settle}")
+        return super().segment(images, predicted_px)
+
+    def settle(self):
+        self.calls.append("settle")
+
+
+class CallSink(MemorySink):
+    def __init__(self, calls):
+        super().__init__()
+        self.calls = calls
+
+    def handle(self, frame, observation, estimate, latency_s, status):
+        self.calls.append("estimate sent")
+        super().handle(frame, observation, estimate, latency_s, status)
+
+
+def test_the_background_update_waits_until_the_estimate_has_left(session, joints):
+    """A segmenter with ``settle()`` segments with ``settle=False`` and is settled after the
+    sinks (the estimate sender first) had the frame: off the critical path."""
+    calls = []
+    tracker = loop_of(session, joints, SettlingSegmenter(session.frames, calls), CallSink(calls))
+    for k in range(3):
+        step(tracker, session, joints, k, received_s=None)
+    assert calls == ["segment, settle=False", "estimate sent", "settle"] * 3
+    tracker.close()
+
+
+def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
+    """The loop waits for a frame at most until priming must start: the priming's running
+    time plus the lead before the frame is due, so that it never holds up the frame."""
+    clock = Clock()
+    segmenter = RehearsingSegmenter(session.frames, clock, took_s=0.004)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    assert tracker.wait_s(clock.now, 0.002) == 0.002  # no pace yet: the joints' poll
+    for k in range(3):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+    # Due at 10.15; the first priming's time is not known yet: a lead before.
+    assert tracker.wait_s(10.11, 0.002) == 0.002
+    assert tracker.wait_s(10.1465, 0.002) == pytest.approx(10.15 - PRIME_LEAD_S - 10.1465)
+    assert tracker.wait_s(10.149, 0.002) == 0.0  # late for it: at once
+    joints.send_until(session.frames[3].time_s - 0.001)
+    clock.now = 10.15 - PRIME_LEAD_S
+    assert tracker.prime(clock.now)
+    assert tracker.wait_s(clock.now, 0.002) == 0.002  # primed: only the joints' poll
+    clock.now = 10.15
+    step(tracker, session, joints, 3, received_s=clock.now)
+    # Due at 10.20, priming takes 4 ms: it starts 4 ms plus a lead before.
+    start_s = 10.20 - PRIME_LEAD_S - 0.004
+    assert tracker.wait_s(start_s - 0.001, 0.002) == pytest.approx(0.001)
+    assert not tracker.prime(start_s - 0.0001)
+    clock.now = start_s + 1e-9  # (rounding)
+    assert tracker.prime(clock.now)
+    assert clock.now == pytest.approx(10.20 - PRIME_LEAD_S)  # ended a lead before the frame
+    tracker.close()
+
+
 def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
     clock = Clock()
     segmenter = RehearsingSegmenter(session.frames, clock, fails=RuntimeError("boom"))
@@ -320,9 +395,11 @@ def test_a_rehearsal_longer_than_a_fifth_of_the_period_is_skipped(session, joint
     tracker.close()
 
 
-def test_a_rehearsal_changes_nothing_in_the_segmenter():
+def test_a_rehearsal_or_a_deferred_background_update_changes_nothing_in_the_segmenter():
     """Pairs segmented with a rehearsal of each before the next give the same points as
-    without (the background model, its shift samples and the regions are untouched)."""
+    without (the background model, its shift samples and the regions are untouched); so do
+    pairs whose background update waits for ``settle()`` (the live loop's, once the estimate
+    has left) or for the next frame, and the background models end the same."""
     from models.catheter import default_catheter
     from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
     from replay.simulation.simulator import default_scene
@@ -335,17 +412,23 @@ def test_a_rehearsal_changes_nothing_in_the_segmenter():
     rng = np.random.default_rng(2)
     qs = np.column_stack([np.linspace(0, 1, 12), np.linspace(0.8, -0.6, 12), np.full(12, 0.7)])
     pairs = [renderer.render(q, 0.4, rng).images for q in qs]
-    results = []
-    for rehearse in (False, True):
+    results, backgrounds = [], []
+    for mode in ("plain", "rehearsed", "settled after", "settled by the next frame"):
         segmenter = PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm,
                                   renderer.backgrounds)
         out = []
         for k, images in enumerate(pairs):
-            if rehearse and k:
+            if mode != "plain" and k:
                 segmenter.rehearse(pairs[k - 1])
                 segmenter.rehearse(pairs[k - 1], (None, np.zeros((2, 2))))
-            seg = segmenter.segment(images)
+            seg = segmenter.segment(images, settle=mode in ("plain", "rehearsed"))
+            if mode == "settled after":
+                segmenter.settle()
             out.append(np.concatenate([np.ravel(a) for a in (*seg.uv, *seg.cov)]))
         results.append(np.array(out))
+        backgrounds.append(np.stack(segmenter.backgrounds))
     assert np.isfinite(results[0]).mean() > 0.9
-    np.testing.assert_array_equal(results[0], results[1])
+    assert not np.array_equal(backgrounds[0], np.stack(renderer.backgrounds))  # updated
+    for other, background in zip(results[1:], backgrounds[1:], strict=True):
+        np.testing.assert_array_equal(results[0], other)
+        np.testing.assert_array_equal(backgrounds[0], background)

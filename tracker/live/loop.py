@@ -54,6 +54,7 @@ import numpy as np
 from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
 from tracker.io.udp import JointReceiver
+from tracker.live.affinity import LoopAffinity
 from tracker.live.pacing import FramePace
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
@@ -162,6 +163,9 @@ class LiveTracker:
         view, px) is where the last estimate puts the catheter at this frame's time: the
         segmenter searches around it first. It is predicted off the critical path, once the
         last frame's estimate was sent and again when the frame is due (:meth:`prime`).
+        A segmenter with ``settle()`` is called ``segment(images, predicted_px,
+        settle=False)`` and settled once the estimate has left: the update of its
+        background models is off the critical path.
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -187,6 +191,10 @@ class LiveTracker:
     rehearse : bool
         Whether priming also segments the last frame's images again, without changing the
         segmenter (:meth:`prime`; a segmenter without ``rehearse`` is never rehearsed).
+    pin : bool
+        During :meth:`run`, keep the loop's thread on a processor of its own and the
+        process's other threads and child processes off it
+        (:class:`~tracker.live.affinity.LoopAffinity`; Linux, two processors or more).
     """
 
     def __init__(
@@ -205,6 +213,7 @@ class LiveTracker:
         cv_threads: int | None = 1,
         prime_lead_s: float | None = PRIME_LEAD_S,
         rehearse: bool = True,
+        pin: bool = True,
     ) -> None:
         self.reconstructor = reconstructor
         self.estimator = estimator
@@ -218,7 +227,10 @@ class LiveTracker:
         self.cv_threads = cv_threads
         self.prime_lead_s = prime_lead_s
         self.rehearse = rehearse and callable(getattr(segmenter, "rehearse", None))
+        self._settles = callable(getattr(segmenter, "settle", None))
+        self.affinity = LoopAffinity() if pin else None
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
+        self._prime_s = 0.0  # how long priming takes, the rehearsal included (a running mean)
         self._last_images = None  # the last frame's images, for the rehearsal
         self.idle = threading.Event()  # set while the loop waits for a frame
         self.idle.set()
@@ -408,8 +420,7 @@ class LiveTracker:
             return False
         if self.prime_lead_s is None or self.joints is None:
             return False
-        lead_s = self.prime_lead_s + self._rehearsal_s
-        if now < due_s - lead_s:
+        if now < self._prime_at(due_s):
             return False
         self._primed = True
         self.idle.clear()
@@ -421,7 +432,23 @@ class LiveTracker:
             ahead_s = max(sample.age_s, 0.0)
             self._predict_region(time_s, self._moved_on(sample.q, sample.q_dot, ahead_s))
         self._rehearse(time_s)
+        took = self.monotonic() - now
+        self._prime_s = took if self._prime_s == 0.0 else 0.8 * self._prime_s + 0.2 * took
         return True
+
+    def _prime_at(self, due_s: float) -> float:
+        """When to start priming for a frame due at ``due_s``: early enough that priming
+        (its running mean) ends :data:`PRIME_LEAD_S` before the frame, so that it does not
+        hold up the frame when it comes."""
+        return due_s - self.prime_lead_s - self._prime_s
+
+    def wait_s(self, now: float, poll_s: float) -> float:
+        """How long the loop may wait for a frame before it has something to do: drain the
+        joints (every ``poll_s``) or start priming, s."""
+        if self._primed or self.prime_lead_s is None or self.joints is None:
+            return poll_s
+        start_s = self._prime_at(self.pace.due_s(self._speed))
+        return min(poll_s, max(start_s - now, 0.0))
 
     def _rehearse(self, time_s: float) -> None:
         """Segment the last frame's images again, where the next frame's region is (see
@@ -448,7 +475,9 @@ class LiveTracker:
     def _segment(self, time_s: float, images) -> SegmentedMarkers:
         self._last_images = images
         predicted = self._region_for(time_s)
-        if predicted is None:
+        if self._settles:
+            seg = self.segmenter.segment(images, predicted, settle=False)
+        elif predicted is None:
             seg = self.segmenter.segment(images)
         else:
             seg = self.segmenter.segment(images, predicted)
@@ -553,6 +582,8 @@ class LiveTracker:
             next_time_s = self.pace.next_time_s
             if next_time_s is not None and not status & PREDICT_ONLY:
                 self._predict_region(next_time_s, self._moved_on(q, q_dot, next_time_s - time_s))
+            if self._settles:
+                self.segmenter.settle()
         self.cycle.add(self.monotonic() - reference)
         return LiveResult(frame, observation, estimate, latency_s, status)
 
@@ -629,13 +660,18 @@ class LiveTracker:
         if self.cv_threads is not None:
             cv2.setNumThreads(self.cv_threads)
         started = self.monotonic()
-        last_item_s = started
+        last_item_s = swept_s = started
         reason = "source exhausted"
         try:
             if on_start is not None:
                 on_start()
             if self._capture is not None:
-                entries = self._capture.items()
+                self._capture.start()
+            if self.affinity is not None:
+                self.affinity.apply()
+            if self._capture is not None:
+                poll_s = self._capture.poll_s
+                entries = self._capture.items(lambda: self.wait_s(self.monotonic(), poll_s))
             else:
                 entries = _arrivals(source, self.monotonic)
             while True:
@@ -654,6 +690,9 @@ class LiveTracker:
                 if entry is None:
                     if not self.prime(now) and self.joints is not None:
                         self.joints.poll()
+                    if self.affinity is not None and now - swept_s > 1.0 and not self._primed:
+                        swept_s = now
+                        self.affinity.sweep()  # threads the loop's thread started
                     if idle_timeout_s is not None and now - last_item_s > idle_timeout_s:
                         reason = f"no frame for {idle_timeout_s:g} s"
                         break
@@ -671,6 +710,8 @@ class LiveTracker:
             self.idle.set()  # primed for a frame that never came: the sinks must not wait
             sys.setswitchinterval(switch_interval_s)
             cv2.setNumThreads(cv_threads)
+            if self.affinity is not None:
+                self.affinity.restore()
             self.summary.stop_reason = reason
             self.summary.duration_s = self.monotonic() - started
             try:

@@ -155,13 +155,16 @@ class NewestOnly:
             raise StopIteration
         return None
 
-    def items(self) -> Iterator[tuple[object, float] | None]:
+    def items(
+        self, wait_s: Callable[[], float] | None = None
+    ) -> Iterator[tuple[object, float] | None]:
         """(item, arrival time) of the newest item whenever the caller asks, ``None`` while
-        there is none; ends with the source."""
+        there is none (after ``poll_s``, or after ``wait_s()`` when given: the caller's own
+        deadline); ends with the source."""
         self.start()
         while True:
             try:
-                yield self.take(self.poll_s)
+                yield self.take(self.poll_s if wait_s is None else wait_s())
             except StopIteration:
                 return
 

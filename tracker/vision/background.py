@@ -256,6 +256,7 @@ class CameraSegmenter:
         self.last: ViewSegmentation | None = None
         self.noise_gray: float | None = None  # running estimate of the sensor noise
         self._drift_px = np.zeros(2)  # the persistent part of the frames' shift (x, y), px
+        self._pending: tuple | None = None  # a frame's background update not yet made
 
     @property
     def shift_px(self) -> Array:
@@ -282,7 +283,9 @@ class CameraSegmenter:
             or math.hypot(*shift.tolist()) > 3.0 * limit
         )
 
-    def segment(self, image: Array, predicted_px: Array | None = None) -> ViewSegmentation:
+    def segment(
+        self, image: Array, predicted_px: Array | None = None, *, settle: bool = True
+    ) -> ViewSegmentation:
         """Segment one frame, then update the background and the region of interest.
 
         Parameters
@@ -292,6 +295,11 @@ class CameraSegmenter:
             Where the catheter's points are expected in this image (e.g. the last estimate's
             points reprojected), px: the search starts in the region around them and the
             base. Without them, the region around the last frame's catheter.
+        settle : bool
+            Average the frame into the background model now. With False the update waits
+            for :meth:`settle` (the live loop calls it once the estimate has left, so that
+            it is off the critical path), or for the next frame at the latest; the results
+            are the same either way. ``image`` must not be changed meanwhile.
 
         Returns
         -------
@@ -302,6 +310,7 @@ class CameraSegmenter:
             background image as it was given.
         """
         image = check_image(image, f"{self.name} image", self.background.image.shape)
+        self.settle()
         s = self.settings
         segmenter = self.segmenter
         model = self.background
@@ -335,7 +344,9 @@ class CameraSegmenter:
                 photometry.sigma_gray if self.noise_gray is None
                 else 0.9 * self.noise_gray + 0.1 * photometry.sigma_gray
             )
-            model.update(image, photometry, lines)
+            self._pending = (image, photometry, lines)
+            if settle:
+                self.settle()
         elif extra:
             seg = dataclasses.replace(seg, flags=seg.flags | extra)
         if seg.centreline_px.shape[0] >= 2:
@@ -344,11 +355,19 @@ class CameraSegmenter:
             self.last = None
         return seg
 
+    def settle(self) -> None:
+        """Average the last frame segmented with ``settle=False`` into the background model
+        (nothing when there is none pending)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            self.background.update(*pending)
+
     def rehearse(self, image: Array, predicted_px: Array | None = None) -> None:
         """Segment ``image`` as :meth:`segment` would, and change nothing: no background
         update, no shift, no region kept (``LiveTracker.prime`` runs it on the last frame
         just before the next one is due, so that the segmentation's code and data are back
         in the processor's caches when it comes)."""
+        self.settle()
         model = self.background
         photometry = self.segmenter.photometry(image, model.image, model.samples)
         if self.segmenter.photometry_flags(photometry) & NOT_SEGMENTED:

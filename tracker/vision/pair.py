@@ -347,7 +347,8 @@ class PairSegmenter:
 
     @property
     def backgrounds(self) -> tuple[Array, ...]:
-        """Each camera's current background model (uint8)."""
+        """Each camera's current background model (uint8), the last frame averaged in."""
+        self.settle()
         return tuple(camera.background.image for camera in self.cameras)
 
     @property
@@ -361,7 +362,11 @@ class PairSegmenter:
             camera.reset()
 
     def segment(
-        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
+        self,
+        images: Sequence[Array],
+        predicted_px: Sequence[Array | None] | None = None,
+        *,
+        settle: bool = True,
     ) -> PairSegmentation:
         """Segment one synchronised frame (one image per view, in the rig's order).
 
@@ -372,6 +377,9 @@ class PairSegmenter:
             Where the catheter's points are expected in each image (e.g. the last estimate's
             points reprojected), px; each camera searches around them first (see
             :meth:`CameraSegmenter.segment`).
+        settle : bool
+            Average the frame into the background models now; with False, at
+            :meth:`settle` (see :meth:`CameraSegmenter.segment`).
         """
         if len(images) != len(self.cameras):
             raise ValueError(
@@ -382,10 +390,15 @@ class PairSegmenter:
         # Each camera's points moved out of its frame's shift (a vibration, a re-registered
         # move) into the pixels where the rig's calibration holds.
         views = tuple(
-            camera.in_camera_frame(camera.segment(image, predicted))
+            camera.in_camera_frame(camera.segment(image, predicted, settle=settle))
             for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True)
         )
         return combine_views(self.segmenter, views, self.rig)
+
+    def settle(self) -> None:
+        """Average a frame segmented with ``settle=False`` into the background models."""
+        for camera in self.cameras:
+            camera.settle()
 
     def rehearse(
         self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
