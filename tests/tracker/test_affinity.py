@@ -5,6 +5,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
+import time
+from pathlib import Path
 
 import pytest
 
@@ -63,16 +65,23 @@ def test_one_processor_allowed_pins_nothing():
 @pytest.mark.skipif(len(ALLOWED) < 2, reason="needs two processors to share out")
 def test_the_loop_thread_gets_a_processor_and_everything_else_leaves_it():
     other, other_tid, other_done = _parked()
-    child = multiprocessing.get_context("spawn").Process(target=_sleep, args=(30,))
+    capture, capture_tid, capture_done = _parked()
+    child = multiprocessing.get_context("spawn").Process(target=_sleep_in_a_thread, args=(30,))
     child.start()
+    child_threads = Path(f"/proc/{child.pid}/task")
+    while len(os.listdir(child_threads)) < 2:  # its thread started
+        time.sleep(0.01)
     affinity = LoopAffinity()
     loop_cpu, others = max(ALLOWED), set(ALLOWED) - {max(ALLOWED)}
     assert affinity.loop_cpu == loop_cpu and affinity.others == others
 
+    def child_cpus():
+        return [os.sched_getaffinity(int(tid)) for tid in os.listdir(child_threads)]
+
     def loop():
-        assert affinity.apply()
+        assert affinity.apply(with_loop=(capture_tid, None))
         seen = {"loop": os.sched_getaffinity(0), "other": os.sched_getaffinity(other_tid),
-                "child": os.sched_getaffinity(child.pid)}  # fmt: skip
+                "capture": os.sched_getaffinity(capture_tid), "child": child_cpus()}  # fmt: skip
         # A thread the loop's thread starts inherits its processor until a sweep.
         late, late_tid, late_done = _parked()
         seen["late, before the sweep"] = os.sched_getaffinity(late_tid)
@@ -81,7 +90,8 @@ def test_the_loop_thread_gets_a_processor_and_everything_else_leaves_it():
         affinity.restore()
         seen["restored"] = {
             "loop": os.sched_getaffinity(0), "other": os.sched_getaffinity(other_tid),
-            "child": os.sched_getaffinity(child.pid), "late": os.sched_getaffinity(late_tid),
+            "capture": os.sched_getaffinity(capture_tid),
+            "child": child_cpus(), "late": os.sched_getaffinity(late_tid),
         }  # fmt: skip
         late_done.set()
         late.join()
@@ -90,19 +100,24 @@ def test_the_loop_thread_gets_a_processor_and_everything_else_leaves_it():
     try:
         seen = _in_thread(loop)
     finally:
-        other_done.set()
-        other.join()
+        for thread, done in ((other, other_done), (capture, capture_done)):
+            done.set()
+            thread.join()
         child.terminate()
         child.join()
-    assert seen["loop"] == {loop_cpu}
-    assert seen["other"] == others and seen["child"] == others
+    assert seen["loop"] == seen["capture"] == {loop_cpu}
+    # Every thread of a child process: the demo's controller streams from one of its own.
+    assert seen["other"] == others and seen["child"] == [others, others]
     assert seen["late, before the sweep"] == {loop_cpu}
     assert seen["late, after the sweep"] == others
-    assert seen["restored"] == dict.fromkeys(("loop", "other", "child", "late"), ALLOWED)
+    restored = seen.pop("restored")
+    assert restored.pop("child") == [ALLOWED, ALLOWED]
+    assert restored == dict.fromkeys(("loop", "other", "capture", "late"), ALLOWED)
     assert not affinity.active
 
 
-def _sleep(seconds):
-    import time
-
-    time.sleep(seconds)
+def _sleep_in_a_thread(seconds):
+    """A child process whose second thread sleeps (as the demo's controller streams)."""
+    worker = threading.Thread(target=time.sleep, args=(seconds,))
+    worker.start()
+    worker.join()

@@ -5,11 +5,13 @@ frame's segmentation and estimate need next: on the 2-core development machine a
 segmented right after another costs 2.5 ms, and 7 ms after 45 ms of other work on the same
 processor (docs/live.md, *Where the time goes*). During :meth:`LiveTracker.run
 <tracker.live.loop.LiveTracker.run>` the loop's thread therefore runs on one processor, the
-last one it may use, and the process's other threads (the capture, the queued sinks,
-rerun's) and its child processes (the demo's cameras and controller) on the others. Threads
-started later by the loop's thread (a queued sink starts its thread with its first job)
-inherit its processor; :meth:`LoopAffinity.sweep` moves them off, and the loop calls it
-while it waits. With a single processor allowed, nothing is pinned.
+last one it may use, together with the capture thread that hands it each frame. The
+process's other threads (the queued sinks, rerun's) and every thread of its child processes
+(the demo's cameras and controller) run on the others: the controller's 1 kHz joint stream
+alone used to preempt the loop about seven times a frame. Threads started later by the
+loop's thread (a queued sink starts its thread with its first job) inherit its processor;
+:meth:`LoopAffinity.sweep` moves them off, and the loop calls it while it waits. With a
+single processor allowed, nothing is pinned.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
+from collections.abc import Iterable
 from pathlib import Path
 
 _TASKS = Path("/proc/self/task")
@@ -24,6 +27,14 @@ _TASKS = Path("/proc/self/task")
 
 def _supported() -> bool:
     return hasattr(os, "sched_setaffinity") and _TASKS.is_dir()
+
+
+def _threads(tasks: Path) -> list[int]:
+    """The thread ids of a process (its ``/proc/<pid>/task``); none if it has ended."""
+    try:
+        return [int(name) for name in os.listdir(tasks)]
+    except OSError:
+        return []
 
 
 class LoopAffinity:
@@ -41,6 +52,7 @@ class LoopAffinity:
         self._saved: dict[int, set[int]] = {}  # thread or process id -> its processors before
         self._loop_tid: int | None = None
         self._original: set[int] = set()  # the loop thread's processors before
+        self._with_loop: set[int] = set()  # the threads on the loop's processor
         if not _supported():
             return
         allowed = set(os.sched_getaffinity(0) if allowed is None else allowed)
@@ -59,42 +71,48 @@ class LoopAffinity:
             if before != cpus:
                 os.sched_setaffinity(task_id, cpus)
                 # A thread the loop's thread started while pinned gets the loop's own back.
-                inherited = before == {self.loop_cpu} and task_id != self._loop_tid
+                inherited = before == {self.loop_cpu} and task_id not in self._with_loop
                 self._saved.setdefault(task_id, self._original if inherited else before)
         except OSError:  # ended meanwhile, or not ours to move
             pass
 
-    def apply(self) -> bool:
+    def apply(self, with_loop: Iterable[int | None] = ()) -> bool:
         """Pin the calling thread (the loop's) and move everything else off its processor;
-        False when there is nothing to share out."""
+        False when there is nothing to share out.
+
+        ``with_loop``: the native ids of threads that share the loop's processor (the
+        capture thread, which hands the loop each frame the moment it comes, when the loop
+        waits for it: elsewhere it would queue behind the outputs for its turn).
+        """
         if self.loop_cpu is None or self.active:
             return False
         self._loop_tid = threading.get_native_id()
+        self._with_loop = {self._loop_tid} | {tid for tid in with_loop if tid is not None}
         self._original = os.sched_getaffinity(0)
         self.sweep()
-        for child in multiprocessing.active_children():
-            if child.pid is not None:
-                self._move(child.pid, self.others)
-        self._move(self._loop_tid, {self.loop_cpu})
+        for task_id in self._with_loop:
+            self._move(task_id, {self.loop_cpu})
         return True
 
     def sweep(self) -> None:
-        """Move the process's threads other than the loop's off its processor (those started
-        since :meth:`apply` included)."""
+        """Move the threads of the process other than the loop's, and every thread of its
+        child processes, off the loop's processor (those started since :meth:`apply`
+        included)."""
         if not self.active:
             return
-        try:
-            tasks = [int(name) for name in os.listdir(_TASKS)]
-        except OSError:
-            return
+        tasks = _threads(_TASKS)
+        for child in multiprocessing.active_children():
+            if child.pid is not None:
+                tasks += _threads(Path(f"/proc/{child.pid}/task"))
         for task_id in tasks:
-            if task_id != self._loop_tid:
+            if task_id not in self._with_loop:
                 self._move(task_id, self.others)
 
     def restore(self) -> None:
         """Give every thread and process moved its processors back."""
         saved, self._saved = self._saved, {}
         self._loop_tid = None
+        self._with_loop = set()
         for task_id, cpus in saved.items():
             try:
                 os.sched_setaffinity(task_id, cpus)

@@ -668,7 +668,8 @@ class LiveTracker:
             if self._capture is not None:
                 self._capture.start()
             if self.affinity is not None:
-                self.affinity.apply()
+                capture = self._capture
+                self.affinity.apply(() if capture is None else (capture.thread_id,))
             if self._capture is not None:
                 poll_s = self._capture.poll_s
                 entries = self._capture.items(lambda: self.wait_s(self.monotonic(), poll_s))

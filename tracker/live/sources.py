@@ -109,6 +109,11 @@ class NewestOnly:
         """The source's datagram counts, if it has them."""
         return getattr(self.source, "counts", None)
 
+    @property
+    def thread_id(self) -> int | None:
+        """The capture thread's native id (None before it starts)."""
+        return self._thread.native_id
+
     def _capture(self) -> None:
         try:
             for item in self.source:
