@@ -438,7 +438,7 @@ import importlib, math, numba, numpy as np
 from dataclasses import replace
 from models.catheter import default_catheter
 from tracker.estimators import make_estimator
-from tracker.types import Observation
+from tracker.types import Observation, ViewMeasurement
 
 modules = [importlib.import_module(f"tracker.estimators.{name}") for name in (
     "ukf_kernels", "ukf_rules", "ukf_gate", "ukf_step", "measurement_kernels",
@@ -483,6 +483,12 @@ for k in range(40):
                               velocity_cov_b=4 * cov, velocity_tip_cov_b=0.5 * cov)
     if k % 8 == 1:
         observation = replace(observation, tip_b_mm=np.full(3, np.nan))
+    if k % 6 == 4:  # points seen in one view only (the single-view update)
+        view = rig.views[k % 2]
+        uv = view.project(measured[:2])
+        observation = replace(observation, tip_b_mm=None, markers_b_mm=None, views=(
+            ViewMeasurement(view, np.eye(3), np.zeros(3), uv,
+                            np.broadcast_to(np.eye(2), (2, 2, 2)).copy(), np.array([-1, 0])),))
     if k % 5 == 1:  # recorded arrays are often read-only
         for value in vars(observation).values():
             if isinstance(value, np.ndarray):

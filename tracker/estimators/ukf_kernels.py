@@ -507,6 +507,9 @@ def warm_up() -> None:
         P = np.eye(n)[None].copy()
         rows = np.zeros(1, dtype=np.intp)
         P, L, ok = row_factors(rows, rows, P[:, None], P[:, None], np.zeros((1, 1), bool))
+        fixed = rows.copy()
+        fixed.flags.writeable = False  # a bank of one's standing indices (single views)
+        row_factors(fixed, fixed, P[:, None], P[:, None], np.zeros((1, 1), bool))
         sigmas, offsets = sigma_rows(x, L, 1.0)
         W = np.full(2 * n + 1, 1.0 / (2 * n + 1))
         G = 2
