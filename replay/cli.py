@@ -602,6 +602,12 @@ def _add_track(sub) -> None:
         help="stop after S seconds without a frame (default: run until Ctrl-C)",
     )
     run.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    run.add_argument(
+        "--no-pin",
+        action="store_true",
+        help="leave the loop's thread to the scheduler (default: on a processor of its own,"
+        " the other threads off it, with two processors or more; docs/live.md)",
+    )
     p.set_defaults(run=_command("track"))
 
 

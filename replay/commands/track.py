@@ -116,6 +116,7 @@ def _session_settings(args: argparse.Namespace, kind: str) -> SessionSettings:
         queued=not (kind == "recording" and not args.speed),  # as fast as possible: inline
         images=not args.no_images,
         image_every=args.image_every,
+        pin=not args.no_pin,
     )
 
 

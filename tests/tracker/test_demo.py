@@ -207,6 +207,23 @@ def test_track_plays_a_recording_to_every_output_and_skips_a_missing_viewer(
     assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == n + 1
 
 
+@pytest.mark.parametrize("flag, pinned", [((), True), (("--no-pin",), False)])
+def test_track_pins_the_loop_thread_unless_told_not_to(recorded, flag, pinned):
+    """``--no-pin`` leaves the loop's thread to the scheduler: the setting reaches the
+    session's loop."""
+    from replay.cli import build_parser
+    from replay.commands.track import _session_settings
+    from tracker.live.session import LiveSession
+
+    session, path, _ = recorded
+    args = build_parser().parse_args(["track", "--recording", str(path), *flag])
+    settings = _session_settings(args, "recording")
+    assert settings.pin is pinned
+    with LiveSession(settings, session.scene) as live:
+        assert (live.tracker.affinity is not None) is pinned
+        live.tracker.close()
+
+
 def test_track_takes_markers_and_joints_over_udp(recorded, capsys):
     session, _, rig = recorded
     frames = session.frames[:20]  # 1 s: the joint history (2 s at 1 kHz) holds it all

@@ -90,6 +90,9 @@ class SessionSettings:
     record_queue : int
         Frames queued for the recording and the CSV file, which never drop: when full, the
         loop waits (a loud warning, counted).
+    pin : bool
+        The loop's thread on a processor of its own during the run, the other threads and
+        child processes off it (:class:`tracker.live.affinity.LoopAffinity`).
     """
 
     estimator: str = "ukf"
@@ -110,6 +113,7 @@ class SessionSettings:
     viewer_queue: int = 32
     igtl_queue: int = 8
     record_queue: int = 512
+    pin: bool = True
 
     def __post_init__(self) -> None:
         if self.image_every < 1:
@@ -317,6 +321,7 @@ class LiveSession:
                 joints=self.joints,
                 segmenter=segmenter,
                 report=report,
+                pin=settings.pin,
             )
             if viewer_sink is not None:
                 viewer_sink.summary = self.tracker.summary
