@@ -126,3 +126,31 @@ def test_a_cross_covariance_too_large_is_a_skipped_step_not_an_error():
         assert estimator.skipped == {DECORRELATED: 1}, name
         after = estimator.step(dataclasses.replace(good, time_s=3.0))
         assert not after.flags & Flag.INVALID_INPUT and len(estimator.skipped) == 1, name
+
+
+def test_a_checked_estimator_copies_and_pickles_and_steps_on_the_same():
+    """A checked estimator is copied (a fork of a filter) and pickled (to a worker process)
+    whole: the copies step on to the original's estimates, bit for bit."""
+    import copy
+    import pickle
+
+    from replay.simulation.sources import simulated_session
+    from tracker.estimators import make_estimator
+    from tracker.reconstruction import Reconstructor
+
+    session = simulated_session(duration_s=1.5, frame_rate_hz=20.0, noise=0.1, seed=5)
+    scene = session.scene
+    reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
+    observations = [reconstructor.observe(frame) for frame in session.frames]
+    original = make_estimator("ukf", scene.catheter)
+    for observation in observations[:10]:
+        original.step(observation)
+    twins = [copy.deepcopy(original), pickle.loads(pickle.dumps(original))]
+    for observation in observations[10:]:
+        want = original.step(observation)
+        assert want.valid
+        for twin in twins:
+            got = twin.step(observation)
+            assert (got.delta_L_rad, got.std_rad, got.flags) == (
+                want.delta_L_rad, want.std_rad, want.flags
+            )

@@ -260,6 +260,8 @@ class CheckedEstimator:
         self._rejected_times: list[float] = []
 
     def __getattr__(self, name: str):
+        if name == "inner":  # not set yet (an instance being copied or unpickled)
+            raise AttributeError(name)
         return getattr(self.inner, name)
 
     def reset(self) -> None:
