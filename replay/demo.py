@@ -372,6 +372,10 @@ def report_lines(
         )
     lat, cyc = summary.latency_ms, summary.cycle_ms
     joints = summary.joints
+    stages = [  # where the latency goes
+        "| of which " + " / ".join(summary.stage_ms) + ", p50 (ms) | "
+        + " / ".join(_ms(ms["p50"]) for ms in summary.stage_ms.values()) + " |"
+    ] if summary.stage_ms else []  # fmt: skip
     lines += [
         "",
         "| live loop | |",
@@ -381,6 +385,7 @@ def report_lines(
         f"| pairs dropped for a newer one (loop busy) | {summary.frames_superseded} |",
         f"| latency image -> estimate sent, p50 / p99 (ms) | {_ms(lat.get('p50', math.nan))} /"
         f" {_ms(lat.get('p99', math.nan))} |",
+        *stages,
         f"| latency image -> loop done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
         f" / {_ms(cyc.get('p99', math.nan))} |",
         f"| estimates per second | {summary.frames_processed / max(summary.duration_s, 1e-9):.1f}"

@@ -432,3 +432,68 @@ def test_a_rehearsal_or_a_deferred_background_update_changes_nothing_in_the_segm
     for other, background in zip(results[1:], backgrounds[1:], strict=True):
         np.testing.assert_array_equal(results[0], other)
         np.testing.assert_array_equal(backgrounds[0], background)
+
+
+class ClockedSegmenter(StandInSegmenter):
+    """Takes ``took_s`` of the loop's clock per pair."""
+
+    def __init__(self, frames, clock, took_s):
+        super().__init__(frames)
+        self.clock, self.took_s = clock, took_s
+
+    def segment(self, images, predicted_px=None):
+        self.clock.now += self.took_s
+        return super().segment(images, predicted_px)
+
+
+class ClockedEstimator:
+    """An estimator that takes ``took_s`` of the loop's clock per step."""
+
+    def __init__(self, inner, clock, took_s):
+        self.inner, self.clock, self.took_s = inner, clock, took_s
+
+    def step(self, observation):
+        self.clock.now += self.took_s
+        return self.inner.step(observation)
+
+
+def test_the_summary_says_where_the_time_of_a_frame_goes(session, joints):
+    """Segmentation, joints and reconstruction, estimator: each stage's time per frame, in
+    the summary and its lines, and they add up to the latency (the frame waited 0 here)."""
+    clock = Clock()
+    scene = session.scene
+    tracker = LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        ClockedEstimator(make_estimator("ukf", scene.catheter), clock, 0.0005),
+        [MemorySink()], joints=joints.receiver, max_time_jump_s=1e9, monotonic=clock,
+        segmenter=ClockedSegmenter(session.frames, clock, 0.002),
+    )  # fmt: skip
+    for k in range(4):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+    tracker.close()
+    summary = tracker.summary
+    assert list(summary.stage_ms) == ["segmentation", "joints and reconstruction", "estimator"]
+    for name, want_ms in [("segmentation", 2.0), ("joints and reconstruction", 0.0),
+                          ("estimator", 0.5)]:  # fmt: skip
+        assert summary.stage_ms[name]["p50"] == pytest.approx(want_ms, abs=1e-6), name
+        assert summary.stage_ms[name]["p99"] == pytest.approx(want_ms, abs=1e-6), name
+    assert summary.latency_ms["p50"] == pytest.approx(2.5, abs=1e-6)
+    line = next(line for line in summary.lines() if "time per stage" in line)
+    assert "segmentation 2.00 / 2.00 ms" in line and "estimator 0.50 / 0.50 ms" in line
+
+
+def test_a_loop_fed_markers_times_no_segmentation(session, joints):
+    clock = Clock()
+    scene = session.scene
+    tracker = LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        make_estimator("ukf", scene.catheter), [MemorySink()], joints=joints.receiver,
+        max_time_jump_s=1e9, monotonic=clock,
+    )  # fmt: skip
+    joints.send_until(session.frames[1].time_s + 0.002)
+    for k in range(2):
+        clock.now = 10.0 + 0.05 * k
+        tracker.step(session.frames[k], received_s=clock.now)
+    tracker.close()
+    assert list(tracker.summary.stage_ms) == ["joints and reconstruction", "estimator"]

@@ -72,6 +72,8 @@ MAX_FUTURE_S = 1.0
 """How far ahead of this machine's clock a frame stamped with it may be, s."""
 REBASE_AFTER = 5
 """Consistent frames rejected for their time in a row that make a new time base."""
+STAGES = ("segmentation", "joints and reconstruction", "estimator")
+"""The stages of a frame up to its estimate, timed in the summary (``stage_ms``)."""
 ROI_POINTS = 12
 """Points along the predicted catheter that outline the segmentation's region of interest."""
 ROI_TIME_TOLERANCE = 0.5
@@ -241,6 +243,8 @@ class LiveTracker:
         self.age = LatencyRecorder()
         self.latency = LatencyRecorder()
         self.cycle = LatencyRecorder()
+        # Where a frame's time goes, up to the estimate (the summary's ``stage_ms``).
+        self.stages = {name: LatencyRecorder() for name in STAGES}
         self._last_time_s: float | None = None
         self._last_arrival_s: float | None = None
         self._odd_times: list[float] = []  # consecutive frames rejected for their time
@@ -520,6 +524,9 @@ class LiveTracker:
             # Segmentation first: it needs no joint values (its region was predicted after
             # the last frame), and the joints received meanwhile are drained with the rest.
             markers = self._segment(time_s, item[1]) if is_images else item
+            segmented_s = self.monotonic()
+            if is_images:
+                self.stages["segmentation"].add(segmented_s - now)
             q, q_dot, status = self._joints_at(time_s, frame)
             if frame is None:
                 frame = markers.frame(q, q_dot)
@@ -540,6 +547,8 @@ class LiveTracker:
             self._report_once(f"frame:{cause}", f"frame at {time_s:.3f} s dropped: {exc}")
             return None
 
+        observed_s = self.monotonic()
+        self.stages["joints and reconstruction"].add(observed_s - segmented_s)
         try:
             estimate = self.estimator.step(observation)
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -565,6 +574,7 @@ class LiveTracker:
         elif estimate.valid and not status:
             self._last_delta_L_rad = float(estimate.delta_L_rad)
 
+        self.stages["estimator"].add(self.monotonic() - observed_s)
         s.frames_processed += 1
         s.frames_valid += int(estimate.valid)
         s.frames_stale_joints += int(bool(status & LiveStatus.STALE_JOINTS))
@@ -755,6 +765,11 @@ class LiveTracker:
         s.age_ms = self.age.percentiles_ms()
         s.latency_ms = self.latency.percentiles_ms()
         s.cycle_ms = self.cycle.percentiles_ms()
+        s.stage_ms = {
+            name: recorder.percentiles_ms()
+            for name, recorder in self.stages.items()
+            if recorder.values().size
+        }
 
 
 def run_live(

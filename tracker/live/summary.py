@@ -62,6 +62,9 @@ class LiveSummary:
     age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
     latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
     cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
+    # The loop's time per stage up to the estimate (segmentation, joints and reconstruction,
+    # estimator), p50 / p99 / max each, ms: where the latency goes.
+    stage_ms: dict[str, dict[str, float]] = field(default_factory=dict)
     duration_s: float = 0.0
     stop_reason: str = ""
 
@@ -124,6 +127,14 @@ class LiveSummary:
                 f" max {lat['max']:.2f} ms; -> loop done: p50 {cyc['p50']:.2f} ms,"
                 f" p99 {cyc['p99']:.2f} ms; age of a frame when taken: p50 {age['p50']:.2f} ms,"
                 f" max {age['max']:.2f} ms"
+            )
+        if self.stage_ms:
+            out.append(
+                "  time per stage, p50 / p99: "
+                + ", ".join(
+                    f"{name} {ms['p50']:.2f} / {ms['p99']:.2f} ms"
+                    for name, ms in self.stage_ms.items()
+                )
             )
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
