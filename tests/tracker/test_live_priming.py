@@ -16,7 +16,7 @@ from replay.simulation.sources import session_joints, simulated_session
 from tracker.estimators import make_estimator
 from tracker.io.datagrams import encode_joints
 from tracker.io.udp import JointReceiver
-from tracker.live.loop import PRIME_LEAD_S, ROI_POINTS, LiveTracker
+from tracker.live.loop import PRIME_LEAD_S, PRIME_SPREADS, ROI_POINTS, LiveTracker
 from tracker.live.pacing import FramePace
 from tracker.live.sinks import MemorySink
 from tracker.live.sources import ImageSet
@@ -359,6 +359,32 @@ def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
     clock.now = start_s + 1e-9  # (rounding)
     assert tracker.prime(clock.now)
     assert clock.now == pytest.approx(10.20 - PRIME_LEAD_S)  # ended a lead before the frame
+    tracker.close()
+
+
+def test_a_priming_that_varies_starts_earlier_by_its_spread(session, joints):
+    """Primings of 4 ms then 8 ms: the next starts the lead, their running mean (4.8 ms)
+    and PRIME_SPREADS times their running deviation (0.8 ms) before the frame."""
+    clock = Clock()
+    segmenter = RehearsingSegmenter(session.frames, clock, took_s=0.004)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    for k in range(5):
+        clock.now = 10.0 + 0.05 * k
+        step(tracker, session, joints, k, received_s=clock.now)
+        if k in (2, 3):
+            joints.send_until(session.frames[k + 1].time_s - 0.001)
+            clock.now = 10.0 + 0.05 * (k + 1) - 0.001  # just before the next frame
+            assert tracker.prime(clock.now)
+            segmenter.took_s = 0.008
+    due_s = 10.25
+    assert PRIME_SPREADS >= 1.0
+    # Past the start the mean alone would give, less a deviation: priming is due already.
+    assert tracker.wait_s(due_s - PRIME_LEAD_S - 0.0048 - 0.0008, 0.002) == 0.0
+    start_s = due_s - PRIME_LEAD_S - 0.0048 - PRIME_SPREADS * 0.0008
+    assert tracker.wait_s(start_s - 0.001, 0.002) == pytest.approx(0.001)
+    assert not tracker.prime(start_s - 1e-6)
+    clock.now = start_s + 1e-9
+    assert tracker.prime(clock.now)
     tracker.close()
 
 

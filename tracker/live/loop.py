@@ -72,6 +72,9 @@ MAX_FUTURE_S = 1.0
 """How far ahead of this machine's clock a frame stamped with it may be, s."""
 REBASE_AFTER = 5
 """Consistent frames rejected for their time in a row that make a new time base."""
+PRIME_SPREADS = 3.0
+"""Priming starts this many of its running mean deviations earlier than its running mean
+duration alone would have it (a priming that runs long must not hold up the frame)."""
 STAGES = ("segmentation", "joints and reconstruction", "estimator")
 """The stages of a frame up to its estimate, timed in the summary (``stage_ms``)."""
 ROI_POINTS = 12
@@ -233,6 +236,7 @@ class LiveTracker:
         self.affinity = LoopAffinity() if pin else None
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
         self._prime_s = 0.0  # how long priming takes, the rehearsal included (a running mean)
+        self._prime_spread_s = 0.0  # how far a priming strays from that (a running mean)
         self._last_images = None  # the last frame's images, for the rehearsal
         self.idle = threading.Event()  # set while the loop waits for a frame
         self.idle.set()
@@ -437,14 +441,18 @@ class LiveTracker:
             self._predict_region(time_s, self._moved_on(sample.q, sample.q_dot, ahead_s))
         self._rehearse(time_s)
         took = self.monotonic() - now
-        self._prime_s = took if self._prime_s == 0.0 else 0.8 * self._prime_s + 0.2 * took
+        if self._prime_s == 0.0:
+            self._prime_s = took
+        else:
+            self._prime_spread_s = 0.8 * self._prime_spread_s + 0.2 * abs(took - self._prime_s)
+            self._prime_s = 0.8 * self._prime_s + 0.2 * took
         return True
 
     def _prime_at(self, due_s: float) -> float:
         """When to start priming for a frame due at ``due_s``: early enough that priming
         (its running mean) ends :data:`PRIME_LEAD_S` before the frame, so that it does not
         hold up the frame when it comes."""
-        return due_s - self.prime_lead_s - self._prime_s
+        return due_s - self.prime_lead_s - self._prime_s - PRIME_SPREADS * self._prime_spread_s
 
     def wait_s(self, now: float, poll_s: float) -> float:
         """How long the loop may wait for a frame before it has something to do: drain the
