@@ -196,6 +196,7 @@ def live_row(result: DemoResult) -> dict[str, float]:
         "sent": result.estimates_sent,
         "viewer_dropped": sum(s.sink_dropped.values()),
         "age_max": s.age_ms["max"],
+        "stages": s.stage_ms,
     }
 
 
@@ -253,6 +254,10 @@ def report(label: str, m: dict, quiet: dict | None) -> None:
         ratio = r["rms"] / quiet["live"]["rms"]
         line += f" ({ratio:.2f}x quiet) [{verdict(ratio <= 1.5)} <= 1.5x]"
     print(line)
+    stages = ", ".join(
+        f"{name} {ms['p50']:.2f} / {ms['p99']:.2f}" for name, ms in r["stages"].items()
+    )
+    print(f"    {'':>18}  the live loop's time per stage, p50 / p99 (ms): {stages}")
 
 
 def main(argv=None) -> int:
