@@ -523,3 +523,21 @@ def test_a_loop_fed_markers_times_no_segmentation(session, joints):
         tracker.step(session.frames[k], received_s=clock.now)
     tracker.close()
     assert list(tracker.summary.stage_ms) == ["joints and reconstruction", "estimator"]
+
+
+def test_a_background_update_that_fails_is_said_once_and_the_loop_goes_on(session, joints):
+    class FailingSettle(StandInSegmenter):
+        def segment(self, images, predicted_px=None, settle=True):
+            return super().segment(images, predicted_px)
+
+        def settle(self):
+            raise RuntimeError("boom")
+
+    lines = []
+    memory = MemorySink()
+    tracker = loop_of(session, joints, FailingSettle(session.frames), memory)
+    tracker.report = lines.append
+    results = [step(tracker, session, joints, k, received_s=None) for k in range(3)]
+    assert all(r is not None and r.estimate.valid for r in results[1:])
+    assert lines == ["a background update failed (boom)"]
+    tracker.close()

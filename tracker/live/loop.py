@@ -450,8 +450,8 @@ class LiveTracker:
 
     def _prime_at(self, due_s: float) -> float:
         """When to start priming for a frame due at ``due_s``: early enough that priming
-        (its running mean) ends :data:`PRIME_LEAD_S` before the frame, so that it does not
-        hold up the frame when it comes."""
+        (its running mean duration, plus :data:`PRIME_SPREADS` running deviations) ends
+        ``prime_lead_s`` before the frame, so that it does not hold up the frame."""
         return due_s - self.prime_lead_s - self._prime_s - PRIME_SPREADS * self._prime_spread_s
 
     def wait_s(self, now: float, poll_s: float) -> float:
@@ -601,7 +601,10 @@ class LiveTracker:
             if next_time_s is not None and not status & PREDICT_ONLY:
                 self._predict_region(next_time_s, self._moved_on(q, q_dot, next_time_s - time_s))
             if self._settles:
-                self.segmenter.settle()
+                try:
+                    self.segmenter.settle()
+                except Exception as exc:  # the frame's estimate has left: report, go on
+                    self._report_once("settle", f"a background update failed ({exc})")
         self.cycle.add(self.monotonic() - reference)
         return LiveResult(frame, observation, estimate, latency_s, status)
 
