@@ -121,3 +121,19 @@ def _sleep_in_a_thread(seconds):
     worker = threading.Thread(target=time.sleep, args=(seconds,))
     worker.start()
     worker.join()
+
+
+@pytest.mark.skipif(len(ALLOWED) < 2, reason="needs two processors to share out")
+def test_one_loop_of_a_process_is_pinned_at_a_time():
+    first, second = LoopAffinity(), LoopAffinity()
+
+    def loops():
+        applied = [first.apply(), second.apply()]
+        first.restore()
+        applied.append(second.apply())
+        second.restore()
+        return applied, os.sched_getaffinity(0)
+
+    applied, after = _in_thread(loops)
+    assert applied == [True, False, True]
+    assert after == ALLOWED and not first.active and not second.active

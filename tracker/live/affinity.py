@@ -23,6 +23,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 _TASKS = Path("/proc/self/task")
+_active: list[LoopAffinity] = []  # the one pinned loop of the process, if any
+_lock = threading.Lock()
 
 
 def _supported() -> bool:
@@ -39,6 +41,9 @@ def _threads(tasks: Path) -> list[int]:
 
 class LoopAffinity:
     """The loop's thread on one processor, the rest of the process and its children off it.
+
+    One loop of a process is pinned at a time: another one's :meth:`apply` does nothing
+    until the first is restored.
 
     Parameters
     ----------
@@ -84,8 +89,10 @@ class LoopAffinity:
         capture thread, which hands the loop each frame the moment it comes, when the loop
         waits for it: elsewhere it would queue behind the outputs for its turn).
         """
-        if self.loop_cpu is None or self.active:
-            return False
+        with _lock:
+            if self.loop_cpu is None or _active:  # one pinned loop per process
+                return False
+            _active.append(self)
         self._loop_tid = threading.get_native_id()
         self._with_loop = {self._loop_tid} | {tid for tid in with_loop if tid is not None}
         self._original = os.sched_getaffinity(0)
@@ -111,6 +118,9 @@ class LoopAffinity:
     def restore(self) -> None:
         """Give every thread and process moved its processors back."""
         saved, self._saved = self._saved, {}
+        with _lock:
+            if self in _active:
+                _active.remove(self)
         self._loop_tid = None
         self._with_loop = set()
         for task_id, cpus in saved.items():
