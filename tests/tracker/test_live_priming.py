@@ -16,8 +16,8 @@ from replay.simulation.sources import session_joints, simulated_session
 from tracker.estimators import make_estimator
 from tracker.io.datagrams import encode_joints
 from tracker.io.udp import JointReceiver
-from tracker.live.loop import PRIME_LEAD_S, PRIME_SPREADS, ROI_POINTS, LiveTracker
-from tracker.live.pacing import FramePace
+from tracker.live.loop import PRIME_LEAD_S, ROI_POINTS, LiveTracker
+from tracker.live.pacing import PRIME_SPREADS, FramePace
 from tracker.live.sinks import MemorySink
 from tracker.live.sources import ImageSet
 from tracker.reconstruction import Reconstructor
@@ -262,13 +262,20 @@ class Clock:
         return self.now
 
 
-def rehearsing_loop(session, joints, segmenter, clock, report=print):
+def rehearsing_loop(session, joints, segmenter, clock, report=print, estimator=None):
     scene = session.scene
     return LiveTracker(
         Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
-        make_estimator("ukf", scene.catheter), [MemorySink()], joints=joints.receiver,
-        segmenter=segmenter, max_time_jump_s=1e9, monotonic=clock, report=report,
+        estimator or make_estimator("ukf", scene.catheter), [MemorySink()],
+        joints=joints.receiver, segmenter=segmenter, max_time_jump_s=1e9, monotonic=clock,
+        report=report,
     )  # fmt: skip
+
+
+def step_at(tracker, session, joints, clock, k):
+    """Frame ``k`` (its images) arriving at 10 s + k frame periods of the loop's clock."""
+    clock.now = 10.0 + 0.05 * k
+    return step(tracker, session, joints, k, received_s=clock.now)
 
 
 def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, joints):
@@ -278,8 +285,7 @@ def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, join
     segmenter = RehearsingSegmenter(session.frames, clock)
     tracker = rehearsing_loop(session, joints, segmenter, clock)
     for k in range(3):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
     joints.send_until(session.frames[3].time_s - 0.001)
     clock.now = 10.15 - 0.5 * PRIME_LEAD_S
     assert tracker.prime(clock.now)
@@ -340,8 +346,7 @@ def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
     tracker = rehearsing_loop(session, joints, segmenter, clock)
     assert tracker.wait_s(clock.now, 0.002) == 0.002  # no pace yet: the joints' poll
     for k in range(3):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
     # Due at 10.15; the first priming's time is not known yet: a lead before.
     assert tracker.wait_s(10.11, 0.002) == 0.002
     assert tracker.wait_s(10.1465, 0.002) == pytest.approx(10.15 - PRIME_LEAD_S - 10.1465)
@@ -369,8 +374,7 @@ def test_a_priming_that_varies_starts_earlier_by_its_spread(session, joints):
     segmenter = RehearsingSegmenter(session.frames, clock, took_s=0.004)
     tracker = rehearsing_loop(session, joints, segmenter, clock)
     for k in range(5):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
         if k in (2, 3):
             joints.send_until(session.frames[k + 1].time_s - 0.001)
             clock.now = 10.0 + 0.05 * (k + 1) - 0.001  # just before the next frame
@@ -394,8 +398,7 @@ def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
     lines = []
     tracker = rehearsing_loop(session, joints, segmenter, clock, lines.append)
     for k in range(3):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
     joints.send_until(session.frames[3].time_s)
     assert tracker.prime(10.15 - 0.5 * PRIME_LEAD_S)  # primed all the same...
     assert not tracker.rehearse  # ...and no more rehearsals, said once
@@ -413,8 +416,7 @@ def test_a_rehearsal_longer_than_a_fifth_of_the_period_is_skipped(session, joint
     segmenter = RehearsingSegmenter(session.frames, clock, took_s=0.02)
     tracker = rehearsing_loop(session, joints, segmenter, clock)
     for k in range(8):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
         joints.send_until(session.frames[k].time_s + 0.05)
         tracker.prime(clock.now + 0.05 - 0.5 * PRIME_LEAD_S)
     assert 1 <= len(segmenter.rehearsed) <= 2 and tracker.rehearse
@@ -487,16 +489,11 @@ def test_the_summary_says_where_the_time_of_a_frame_goes(session, joints):
     """Segmentation, joints and reconstruction, estimator: each stage's time per frame, in
     the summary and its lines, and they add up to the latency (the frame waited 0 here)."""
     clock = Clock()
-    scene = session.scene
-    tracker = LiveTracker(
-        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
-        ClockedEstimator(make_estimator("ukf", scene.catheter), clock, 0.0005),
-        [MemorySink()], joints=joints.receiver, max_time_jump_s=1e9, monotonic=clock,
-        segmenter=ClockedSegmenter(session.frames, clock, 0.002),
-    )  # fmt: skip
+    estimator = ClockedEstimator(make_estimator("ukf", session.scene.catheter), clock, 0.0005)
+    segmenter = ClockedSegmenter(session.frames, clock, 0.002)
+    tracker = rehearsing_loop(session, joints, segmenter, clock, estimator=estimator)
     for k in range(4):
-        clock.now = 10.0 + 0.05 * k
-        step(tracker, session, joints, k, received_s=clock.now)
+        step_at(tracker, session, joints, clock, k)
     tracker.close()
     summary = tracker.summary
     assert list(summary.stage_ms) == ["segmentation", "joints and reconstruction", "estimator"]
@@ -511,12 +508,7 @@ def test_the_summary_says_where_the_time_of_a_frame_goes(session, joints):
 
 def test_a_loop_fed_markers_times_no_segmentation(session, joints):
     clock = Clock()
-    scene = session.scene
-    tracker = LiveTracker(
-        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
-        make_estimator("ukf", scene.catheter), [MemorySink()], joints=joints.receiver,
-        max_time_jump_s=1e9, monotonic=clock,
-    )  # fmt: skip
+    tracker = rehearsing_loop(session, joints, None, clock)
     joints.send_until(session.frames[1].time_s + 0.002)
     for k in range(2):
         clock.now = 10.0 + 0.05 * k

@@ -16,6 +16,7 @@ single processor allowed, nothing is pinned.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import threading
@@ -71,15 +72,13 @@ class LoopAffinity:
         return self._loop_tid is not None
 
     def _move(self, task_id: int, cpus: frozenset[int] | set[int]) -> None:
-        try:
+        with contextlib.suppress(OSError):  # ended meanwhile, or not ours to move
             before = os.sched_getaffinity(task_id)
             if before != cpus:
                 os.sched_setaffinity(task_id, cpus)
                 # A thread the loop's thread started while pinned gets the loop's own back.
                 inherited = before == {self.loop_cpu} and task_id not in self._with_loop
                 self._saved.setdefault(task_id, self._original if inherited else before)
-        except OSError:  # ended meanwhile, or not ours to move
-            pass
 
     def apply(self, with_loop: Iterable[int | None] = ()) -> bool:
         """Pin the calling thread (the loop's) and move everything else off its processor;
@@ -124,7 +123,5 @@ class LoopAffinity:
         self._loop_tid = None
         self._with_loop = set()
         for task_id, cpus in saved.items():
-            try:
+            with contextlib.suppress(OSError):  # a thread or process that has ended
                 os.sched_setaffinity(task_id, cpus)
-            except OSError:
-                pass

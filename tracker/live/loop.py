@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-import signal
 import sys
 import threading
 import time
@@ -55,7 +54,8 @@ from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
 from tracker.io.udp import JointReceiver
 from tracker.live.affinity import LoopAffinity
-from tracker.live.pacing import FramePace
+from tracker.live.pacing import FramePace, PrimeTiming
+from tracker.live.signals import StopRequest
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
 from tracker.live.summary import LatencyRecorder, LiveSummary
@@ -72,9 +72,6 @@ MAX_FUTURE_S = 1.0
 """How far ahead of this machine's clock a frame stamped with it may be, s."""
 REBASE_AFTER = 5
 """Consistent frames rejected for their time in a row that make a new time base."""
-PRIME_SPREADS = 3.0
-"""Priming starts this many of its running mean deviations earlier than its running mean
-duration alone would have it (a priming that runs long must not hold up the frame)."""
 STAGES = ("segmentation", "joints and reconstruction", "estimator")
 """The stages of a frame up to its estimate, timed in the summary (``stage_ms``)."""
 ROI_POINTS = 12
@@ -100,31 +97,6 @@ class _SinkEntry:
 
 def _sink_name(sink: object) -> str:
     return str(getattr(sink, "name", type(sink).__name__))
-
-
-class _StopRequest:
-    """SIGINT / SIGTERM -> stop after the current frame; a second SIGINT interrupts at once."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self.closing = False
-        self._previous: dict[int, object] = {}
-
-    def install(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return  # signals only reach the main thread; KeyboardInterrupt still works there
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handler)
-
-    def _handler(self, signum, frame) -> None:
-        if self.requested and signum == signal.SIGINT and not self.closing:
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous.clear()
 
 
 def _arrivals(
@@ -235,8 +207,7 @@ class LiveTracker:
         self._settles = callable(getattr(segmenter, "settle", None))
         self.affinity = LoopAffinity() if pin else None
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
-        self._prime_s = 0.0  # how long priming takes, the rehearsal included (a running mean)
-        self._prime_spread_s = 0.0  # how far a priming strays from that (a running mean)
+        self.priming = PrimeTiming()  # how long priming takes, the rehearsal included
         self._last_images = None  # the last frame's images, for the rehearsal
         self.idle = threading.Event()  # set while the loop waits for a frame
         self.idle.set()
@@ -428,7 +399,7 @@ class LiveTracker:
             return False
         if self.prime_lead_s is None or self.joints is None:
             return False
-        if now < self._prime_at(due_s):
+        if now < self.priming.start_s(due_s, self.prime_lead_s):
             return False
         self._primed = True
         self.idle.clear()
@@ -440,26 +411,15 @@ class LiveTracker:
             ahead_s = max(sample.age_s, 0.0)
             self._predict_region(time_s, self._moved_on(sample.q, sample.q_dot, ahead_s))
         self._rehearse(time_s)
-        took = self.monotonic() - now
-        if self._prime_s == 0.0:
-            self._prime_s = took
-        else:
-            self._prime_spread_s = 0.8 * self._prime_spread_s + 0.2 * abs(took - self._prime_s)
-            self._prime_s = 0.8 * self._prime_s + 0.2 * took
+        self.priming.add(self.monotonic() - now)
         return True
-
-    def _prime_at(self, due_s: float) -> float:
-        """When to start priming for a frame due at ``due_s``: early enough that priming
-        (its running mean duration, plus :data:`PRIME_SPREADS` running deviations) ends
-        ``prime_lead_s`` before the frame, so that it does not hold up the frame."""
-        return due_s - self.prime_lead_s - self._prime_s - PRIME_SPREADS * self._prime_spread_s
 
     def wait_s(self, now: float, poll_s: float) -> float:
         """How long the loop may wait for a frame before it has something to do: drain the
         joints (every ``poll_s``) or start priming, s."""
         if self._primed or self.prime_lead_s is None or self.joints is None:
             return poll_s
-        start_s = self._prime_at(self.pace.due_s(self._speed))
+        start_s = self.priming.start_s(self.pace.due_s(self._speed), self.prime_lead_s)
         return min(poll_s, max(start_s - now, 0.0))
 
     def _rehearse(self, time_s: float) -> None:
@@ -672,7 +632,7 @@ class LiveTracker:
         self._speed = getattr(source, "speed", 1.0)  # a played-back stream's pace
         if self.summary.markers is None and getattr(source, "counts", None) is not None:
             self.summary.markers = source.counts
-        stop = _StopRequest()
+        stop = StopRequest()
         if handle_signals:
             stop.install()
         switch_interval_s, cv_threads = sys.getswitchinterval(), cv2.getNumThreads()

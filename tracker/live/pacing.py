@@ -7,6 +7,7 @@ frame is due on this machine's clock. The loop uses it to prime itself just befo
 (:meth:`tracker.live.loop.LiveTracker.prime`): after tens of milliseconds of waiting, while
 other threads and processes ran, the loop's code and data are no longer in the processor's
 caches, and the first stage to run pays for it (about 2 ms a frame on a 2-core machine).
+:class:`PrimeTiming` keeps how long priming takes, so that it ends before the frame comes.
 """
 
 from __future__ import annotations
@@ -65,3 +66,29 @@ class FramePace:
         if period_s is None or self._last_received_s is None or not speed:
             return math.inf
         return self._last_received_s + period_s / speed
+
+
+PRIME_SPREADS = 3.0
+"""Priming starts this many of its running mean deviations earlier than its running mean
+duration alone would have it (a priming that runs long must not hold up the frame)."""
+
+
+class PrimeTiming:
+    """How long the loop's priming takes (running mean and mean deviation), and so when to
+    start it for a frame: early enough that it ends the lead before the frame is due."""
+
+    def __init__(self) -> None:
+        self.mean_s = 0.0
+        self.spread_s = 0.0
+
+    def add(self, took_s: float) -> None:
+        """One priming's duration, s."""
+        if self.mean_s == 0.0:
+            self.mean_s = took_s
+        else:
+            self.spread_s = 0.8 * self.spread_s + 0.2 * abs(took_s - self.mean_s)
+            self.mean_s = 0.8 * self.mean_s + 0.2 * took_s
+
+    def start_s(self, due_s: float, lead_s: float) -> float:
+        """When to start priming for a frame due at ``due_s`` to end ``lead_s`` before it."""
+        return due_s - lead_s - self.mean_s - PRIME_SPREADS * self.spread_s
