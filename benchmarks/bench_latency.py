@@ -209,6 +209,7 @@ def live_row(result: DemoResult) -> dict[str, float]:
         "viewer_dropped": sum(s.sink_dropped.values()),
         "age_max": s.age_ms["max"],
         "age_p50": s.age_ms["p50"],
+        "thirds": s.latency_thirds_ms,
         "stages": s.stage_ms,
     }
 
@@ -277,6 +278,12 @@ def report_live(label: str, r: dict, quiet: dict | None, loaded: bool, factor: f
         f"{name} {ms['p50']:.2f} / {ms['p99']:.2f}" for name, ms in r["stages"].items()
     )
     print(f"    {'':>18}  the live loop's time per stage, p50 / p99 (ms): {stages}")
+    first, middle, last = r["thirds"]
+    print(
+        f"    {'':>18}  latency p50 in each third of the session: {first:.2f} / {middle:.2f} /"
+        f" {last:.2f} ms [{verdict(last - first < period_ms)} not growing: the last third"
+        f" within a frame period of the first]"
+    )
     if factor > 1.0:
         print(
             f"    {'':>18}  processing (latency less the wait for the frame), p50: "

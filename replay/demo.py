@@ -386,6 +386,8 @@ def report_lines(
         f"| latency image -> estimate sent, p50 / p99 (ms) | {_ms(lat.get('p50', math.nan))} /"
         f" {_ms(lat.get('p99', math.nan))} |",
         *stages,
+        "| latency p50 in each third of the run (ms) | "
+        + (" / ".join(_ms(ms) for ms in summary.latency_thirds_ms) or "-") + " |",
         f"| latency image -> loop done, p50 / p99 (ms) | {_ms(cyc.get('p50', math.nan))}"
         f" / {_ms(cyc.get('p99', math.nan))} |",
         f"| estimates per second | {summary.frames_processed / max(summary.duration_s, 1e-9):.1f}"

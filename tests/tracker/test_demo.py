@@ -140,6 +140,8 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
         assert len(cells) == 5 and float(cells[0]) < 5.0, cells  # RMS error, deg
     p50, p99 = table_value(out, "latency image -> estimate sent, p50 / p99 (ms)").split(" / ")
     assert 0 < float(p50) <= float(p99)
+    thirds = table_value(out, "latency p50 in each third of the run (ms)").split(" / ")
+    assert len(thirds) == 3 and all(0 < float(ms) <= float(p99) for ms in thirds), thirds
     assert int(table_value(out, "image pairs rendered too late for real time")) >= 0
     assert str(rrd) in table_value(out, "rerun recording")
 

@@ -1,6 +1,7 @@
 """The online loop against the clock: a slow sink or a full queue, a source faster than the
 loop or failing in its thread, frames stamped far ahead or on a restarted clock, estimator
-errors and unusable frames, the CSV sink, paced sources, and the loop stepped by hand."""
+errors and unusable frames, the CSV sink, paced sources, the loop stepped by hand, and the
+latency's medians by third of a run (a loop falling behind)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from tracker.io.udp import EstimateSender
 from tracker.live.loop import LiveTracker, run_live
 from tracker.live.sinks import CSV_COLUMNS, CsvSink, LiveStatus, MemorySink, QueuedSink
 from tracker.live.sources import ImageSet, PacedSource
+from tracker.live.summary import LatencyRecorder
 from tracker.types import Estimate
 
 # Fixtures shared with test_live.py: pytest finds them under these names.
@@ -376,3 +378,42 @@ def test_loop_object_can_be_stepped_by_hand(noisy_session):
     assert tracker.step(noisy_session.frames[0]) is None  # same time again: dropped
     tracker.close()
     assert math.isfinite(tracker.summary.latency_ms["p50"])
+
+
+def test_the_latency_recorder_keeps_its_ring_in_order_and_gives_each_thirds_median():
+    recorder = LatencyRecorder(capacity=4)
+    for k in range(2):
+        recorder.add(1e-3 * (k + 1))
+    assert all(math.isnan(ms) for ms in recorder.thirds_ms())  # fewer than three
+    for k in range(2, 6):
+        recorder.add(1e-3 * (k + 1))
+    # Six added to a ring of four: the last four, oldest first.
+    np.testing.assert_allclose(recorder.values(), 1e-3 * np.array([3.0, 4.0, 5.0, 6.0]))
+    # Thirds of four, as numpy splits them: (3, 4), (5,), (6,) ms.
+    np.testing.assert_allclose(recorder.thirds_ms(), [3.5, 5.0, 6.0])
+
+
+@pytest.mark.parametrize("lag_per_frame_s", [0.0, 0.01])
+def test_a_loop_that_falls_behind_shows_it_in_the_latency_of_each_third(
+    noisy_session, lag_per_frame_s
+):
+    """Each frame handed over ``lag_per_frame_s`` later than the one before, after its
+    release: the summary's medians by third rise by that times the frames between the
+    thirds' middles; handed over as they come, they stay flat."""
+    clock = FakeClock()
+    tracker = LiveTracker(
+        reconstructor_of(noisy_session),
+        make_estimator("ukf", noisy_session.scene.catheter),
+        monotonic=clock,
+    )
+    frames = noisy_session.frames[:30]
+    for k, frame in enumerate(frames):
+        clock.advance_to(frame.time_s + k * lag_per_frame_s)
+        assert tracker.step(frame, received_s=frame.time_s) is not None
+    tracker.close()
+    first, middle, last = tracker.summary.latency_thirds_ms
+    # Thirds of ten frames: their middles are ten frames apart.
+    assert middle - first == pytest.approx(1e3 * 10 * lag_per_frame_s, abs=0.5)
+    assert last - middle == pytest.approx(1e3 * 10 * lag_per_frame_s, abs=0.5)
+    line = next(x for x in tracker.summary.lines() if "in each third of the run" in x)
+    assert f"{first:.2f} / {middle:.2f} / {last:.2f} ms" in line

@@ -735,6 +735,7 @@ class LiveTracker:
         self._superseded()
         s.age_ms = self.age.percentiles_ms()
         s.latency_ms = self.latency.percentiles_ms()
+        s.latency_thirds_ms = self.latency.thirds_ms()
         s.cycle_ms = self.cycle.percentiles_ms()
         s.stage_ms = {
             name: recorder.percentiles_ms()

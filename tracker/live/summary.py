@@ -25,7 +25,19 @@ class LatencyRecorder:
         self._count += 1
 
     def values(self) -> Array:
-        return self._values[: min(self._count, self._values.size)].copy()
+        """The kept latencies, oldest first, s."""
+        size = self._values.size
+        if self._count <= size:
+            return self._values[: self._count].copy()
+        return np.roll(self._values, -(self._count % size))  # the ring unrolled
+
+    def thirds_ms(self) -> tuple[float, float, float]:
+        """The median of each third of the kept latencies in the order they came, ms: a
+        loop that falls behind its source shows it as a rise (NaN with fewer than three)."""
+        v = self.values()
+        if v.size < 3:
+            return (math.nan, math.nan, math.nan)
+        return tuple(1e3 * float(np.median(part)) for part in np.array_split(v, 3))
 
     def percentiles_ms(self) -> dict[str, float]:
         """p50, p99 and max in ms (NaN when empty)."""
@@ -61,6 +73,8 @@ class LiveSummary:
     sink_stalls: dict[str, int] = field(default_factory=dict)
     age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
     latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
+    # The latency's median in each third of the run, ms: flat unless the loop falls behind.
+    latency_thirds_ms: tuple[float, ...] = ()
     cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
     # The loop's time per stage up to the estimate (segmentation, joints and reconstruction,
     # estimator), p50 / p99 / max each, ms: where the latency goes.
@@ -127,6 +141,12 @@ class LiveSummary:
                 f" max {lat['max']:.2f} ms; -> loop done: p50 {cyc['p50']:.2f} ms,"
                 f" p99 {cyc['p99']:.2f} ms; age of a frame when taken: p50 {age['p50']:.2f} ms,"
                 f" max {age['max']:.2f} ms"
+            )
+        if self.latency_thirds_ms:
+            out.append(
+                "  latency image -> estimate, p50 in each third of the run: "
+                + " / ".join(f"{ms:.2f}" for ms in self.latency_thirds_ms)
+                + " ms"
             )
         if self.stage_ms:
             out.append(
