@@ -19,6 +19,7 @@ At the end it checks, from track's summary and the estimate datagrams it receive
 
 - memory: track's resident set size over time (``/proc/<pid>/status``) does not grow;
 - every bad item counted: each kind of garbage sent is in track's counts under its reason;
+- latency: its median in the last third of the run within a frame period of the first's;
 - every good frame estimated: one estimate datagram per good marker datagram, valid once the
   filter has started, and the recording reads back complete with every frame and estimate.
 """
@@ -201,6 +202,9 @@ def parse_summary(text: str) -> dict:
         for what, n in re.findall(r"([a-z-]+) (\d+)", tail):
             counts[what] = int(n)
         out[label] = counts
+    m = re.search(r"p50 in each third of the run: ([\d.]+) / ([\d.]+) / ([\d.]+) ms", text)
+    if m:
+        out["latency thirds"] = tuple(map(float, m.groups()))
     return out
 
 
@@ -374,6 +378,17 @@ def main(argv=None) -> int:
             )
             print(f"  {label:6s} {reason:20s} sent {n:5d} ({kinds}), counted {got}: {verdict(ok)}")
 
+    # ---- the latency does not grow: the last third's median within a frame period of the
+    # first's (a loop falling behind its source gains a period every few frames)
+    thirds = summary.get("latency thirds")
+    period_ms = 1e3 / args.fps
+    latency_ok = thirds is not None and thirds[2] - thirds[0] < period_ms
+    print(
+        "latency image -> estimate, p50 in each third of the run: "
+        + (" / ".join(f"{ms:.2f}" for ms in thirds) + " ms" if thirds else "not in the summary")
+        + f" (not growing: the last within {period_ms:g} ms of the first): {verdict(latency_ok)}"
+    )
+
     # ---- every good frame estimated
     good_frames = sent["frames"]
     valid = [m for m in estimates if m.valid]
@@ -406,7 +421,8 @@ def main(argv=None) -> int:
         f" (track processed {processed}), read report {'clean' if report_ok else warnings}:"
         f" {verdict(recording_ok)}"
     )
-    ok = memory_ok and counted_ok and estimated_ok and recording_ok and track.returncode == 0
+    ok = memory_ok and counted_ok and latency_ok and estimated_ok and recording_ok
+    ok = ok and track.returncode == 0
     print(f"soak: {verdict(ok)} (track exit code {track.returncode})")
     return 0 if ok else 1
 

@@ -73,7 +73,8 @@ class LiveSummary:
     sink_stalls: dict[str, int] = field(default_factory=dict)
     age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
     latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
-    # The latency's median in each third of the run, ms: flat unless the loop falls behind.
+    # The latency's median in each third of the run (of its last 100 000 frames), ms: flat
+    # unless the loop falls behind.
     latency_thirds_ms: tuple[float, ...] = ()
     cycle_ms: dict[str, float] = field(default_factory=dict)  # image time -> loop done with it
     # The loop's time per stage up to the estimate (segmentation, joints and reconstruction,
