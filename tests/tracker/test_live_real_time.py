@@ -21,7 +21,7 @@ from tracker.io.udp import EstimateSender
 from tracker.live.loop import LiveTracker, run_live
 from tracker.live.sinks import CSV_COLUMNS, CsvSink, LiveStatus, MemorySink, QueuedSink
 from tracker.live.sources import ImageSet, PacedSource
-from tracker.live.summary import LatencyRecorder
+from tracker.live.summary import LatencyRecorder, LiveSummary
 from tracker.types import Estimate
 
 # Fixtures shared with test_live.py: pytest finds them under these names.
@@ -385,6 +385,8 @@ def test_the_latency_recorder_keeps_its_ring_in_order_and_gives_each_thirds_medi
     for k in range(2):
         recorder.add(1e-3 * (k + 1))
     assert all(math.isnan(ms) for ms in recorder.thirds_ms())  # fewer than three
+    summary = LiveSummary(latency_thirds_ms=recorder.thirds_ms())
+    assert not any("third" in line for line in summary.lines())  # no line of NaNs
     for k in range(2, 6):
         recorder.add(1e-3 * (k + 1))
     # Six added to a ring of four: the last four, oldest first.

@@ -143,7 +143,7 @@ class LiveSummary:
                 f" p99 {cyc['p99']:.2f} ms; age of a frame when taken: p50 {age['p50']:.2f} ms,"
                 f" max {age['max']:.2f} ms"
             )
-        if self.latency_thirds_ms:
+        if self.latency_thirds_ms and all(map(math.isfinite, self.latency_thirds_ms)):
             out.append(
                 "  latency image -> estimate, p50 in each third of the run: "
                 + " / ".join(f"{ms:.2f}" for ms in self.latency_thirds_ms)
