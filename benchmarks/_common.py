@@ -64,7 +64,7 @@ def slower(factor: float, methods):
             finally:
                 until = started + factor * (time.thread_time() - started)
                 while time.thread_time() < until:
-                    pass
+                    pass  # busy on purpose: the extra processor time of the slower machine
                 depth[0] -= 1
 
         return stretched
