@@ -219,40 +219,8 @@ def test_pixel_kernels_equal_their_numpy_references(kernel_calls):
     assert np.isfinite([result[:, 0] for _, result in kernel_calls["ends"]]).mean() > 0.8
 
 
-def test_photometry_and_tip_kernels_equal_their_numpy_references(kernel_calls):
-    for (image, rows, cols, levels, usable_levels), result in kernel_calls["tone_sums"]:
-        frame = image[slice(*rows), slice(*cols)].ravel()
-        usable = (frame > 0) & (frame < 255) & usable_levels
-        expected = (
-            usable,
-            frame[usable].astype(float),
-            levels[usable],
-            np.bincount(levels[usable], minlength=256).astype(float),
-            np.bincount(levels[usable], weights=frame[usable], minlength=256),
-        )
-        for value, reference in zip(result, expected, strict=True):
-            assert np.array_equal(value, reference)
-    for (frame, level, lut, gate), result in kernel_calls["tone_residuals"]:
-        residual = frame - lut[level]
-        if np.isnan(gate):  # 4 robust standard deviations (the upper median), at least 2
-            half = np.partition(np.abs(residual), residual.size // 2)[residual.size // 2]
-            gate = max(4.0 * 1.4826 * half, 2.0)
-        out = np.abs(residual) > gate
-        expected = (
-            residual,
-            out,
-            gate,
-            np.bincount(level[out], minlength=256).astype(float),
-            np.bincount(level[out], weights=frame[out], minlength=256),
-        )
-        for value, reference in zip(result, expected, strict=True):
-            assert np.array_equal(value, reference)
-    for (residual, out, gradient, usable), result in kernel_calls["noise_and_shift"]:
-        g, r = gradient[:, usable], np.where(out, 0.0, residual)
-        G = g @ g.T - g[:, out] @ g[:, out].T
-        np.testing.assert_allclose(
-            result, (r @ r, G[0, 0], G[0, 1], G[1, 1], *(g @ r)), rtol=1e-12, atol=1e-9
-        )
+def test_tip_kernel_equals_its_numpy_reference(kernel_calls):
+    # (The photometric fit's kernel: tests/tracker/test_photometry.py.)
     assert kernel_calls["tip_tangent"]
     for args, (tangent, misfit) in kernel_calls["tip_tangent"]:
         expected, least = ref_tip_tangent(*args)
@@ -288,10 +256,11 @@ def test_kernels_are_ready_before_the_first_frame():
 import numba, numpy as np
 from models.catheter import default_catheter
 from replay.simulation.render import Renderer, default_render_rig
-from tracker.vision import kernels, pixel_graph, shift_kernels
+from tracker.vision import kernels, photometry_kernels, pixel_graph, shift_kernels
 from tracker.vision.pair import PairSegmenter
 versions = lambda: {name: (len(f.signatures), f.targetoptions["nogil"], type(f._cache).__name__)
-                    for m in (kernels, pixel_graph, shift_kernels) for name, f in vars(m).items()
+                    for m in (kernels, photometry_kernels, pixel_graph, shift_kernels)
+                    for name, f in vars(m).items()
                     if isinstance(f, numba.core.registry.CPUDispatcher)}
 catheter, rig, base = default_catheter(), default_render_rig(), np.array([0.0, 0.0, -15.0])
 renderer = Renderer(catheter, rig, np.eye(3), base, seed=1)

@@ -15,10 +15,6 @@ compiled loop:
 - :func:`sample_counts`: the pixels per centreline sample, for the self-overlap check;
 - :func:`ends`: the base and the tip at sub-pixel precision (the mass beyond an end cut);
 - :func:`extent_beyond`: the box of the far end;
-- :func:`tone_sums`, :func:`tone_residuals`, :func:`noise_and_shift`: the sums of the
-  photometric fit of a frame to its background (:mod:`tracker.vision.photometry`), over a
-  grid of a few thousand pixels (those of the frame's shift, and the choice of the pixels
-  they run over, are in :mod:`tracker.vision.shift_kernels`);
 - :func:`tip_tangent`: the search of the catheter's 3-D tangent at the tip over a few
   hundred directions (:mod:`tracker.vision.pair`).
 
@@ -42,7 +38,7 @@ import math
 import numba
 import numpy as np
 
-from tracker.vision import pixel_graph, shift_kernels
+from tracker.vision import photometry_kernels, pixel_graph, shift_kernels
 
 
 # ------------------------------------------------------------------------------ contrast
@@ -504,120 +500,6 @@ def ends(xy, w, var_w, dist, line, label, centres, covs, along, base_band, tip_b
     return out
 
 
-# ------------------------------------------------------------------------------ photometry
-@numba.njit(cache=True, nogil=True)
-def tone_sums(image, rows, cols, levels, usable_levels):
-    """The frame on the fit's grid, and its histogram over the background's gray levels.
-
-    Parameters
-    ----------
-    image : uint8 array (h, w)
-    rows, cols : (start, stop, step) tuples of ints
-        The grid (rows, then columns within a row: the order of ``levels``).
-    levels : uint8 array (m,)
-        The background's gray levels on the grid.
-    usable_levels : bool array (m,)
-        The background is neither black nor saturated there.
-
-    Returns
-    -------
-    usable : bool (m,)
-        Neither image is black or saturated there.
-    frame : float64 (n,)
-        The frame's gray levels where usable (n of them)...
-    level : uint8 (n,)
-        ...and the background's.
-    counts, sums : float64 (256,)
-        Per background gray level, the number of usable pixels and the sum of the frame's
-        gray levels over them.
-    """
-    m = levels.size
-    usable = np.zeros(m, np.bool_)
-    frame = np.empty(m)
-    level = np.empty(m, np.uint8)
-    counts = np.zeros(256)
-    sums = np.zeros(256)
-    i = 0
-    n = 0
-    for r in range(rows[0], rows[1], rows[2]):
-        for c in range(cols[0], cols[1], cols[2]):
-            f = image[r, c]
-            if 0 < f < 255 and usable_levels[i]:
-                usable[i] = True
-                b = levels[i]
-                frame[n] = f
-                level[n] = b
-                counts[b] += 1.0
-                sums[b] += np.float64(f)
-                n += 1
-            i += 1
-    return usable, frame[:n], level[:n], counts, sums
-
-
-@numba.njit(cache=True, nogil=True)
-def tone_residuals(frame, level, lut, gate):
-    """The residual of the frame to the tone curve, and what lies beyond the gate.
-
-    ``frame``, ``level`` as :func:`tone_sums` gives them; ``lut`` (float64 (256,)) the tone
-    curve; ``gate`` (float) the bound, or NaN for ``max(4 x 1.4826 x median |residual|, 2)``
-    (the upper median). Returns the residual (float64 (n,)), the pixels beyond the gate
-    (bool (n,)), the gate, and per background gray level the number of those pixels and the
-    sum of their frame's gray levels (float64 (256,) each).
-    """
-    n = frame.size
-    residual = np.empty(n)
-    for i in range(n):
-        residual[i] = frame[i] - lut[level[i]]
-    if math.isnan(gate):
-        k = n // 2
-        gate = max(4.0 * 1.4826 * _select(np.abs(residual), k), 2.0)
-    out = np.zeros(n, np.bool_)
-    counts = np.zeros(256)
-    sums = np.zeros(256)
-    for i in range(n):
-        if abs(residual[i]) > gate:
-            out[i] = True
-            counts[level[i]] += 1.0
-            sums[level[i]] += frame[i]
-    return residual, out, gate, counts, sums
-
-
-@numba.njit(cache=True, nogil=True)
-def noise_and_shift(residual, out, gradient, usable):
-    """The sums of the noise and of the first-order shift, over the pixels within the gate.
-
-    ``residual``, ``out`` as :func:`tone_residuals` gives them, ``usable`` as
-    :func:`tone_sums`; ``gradient`` (float64 (2, m)): the background's central differences
-    on the grid. Returns the sum of the squared residuals, the normal matrix of the
-    gradients ``G`` (G00, G01, G11: those of the usable pixels less those beyond the gate)
-    and the gradients times the residual (two sums).
-    """
-    squares = 0.0
-    g00 = g01 = g11 = 0.0
-    o00 = o01 = o11 = 0.0
-    r0 = r1 = 0.0
-    i = 0
-    for j in range(usable.size):
-        if not usable[j]:
-            continue
-        gx = gradient[0, j]
-        gy = gradient[1, j]
-        g00 += gx * gx
-        g01 += gx * gy
-        g11 += gy * gy
-        if out[i]:
-            o00 += gx * gx
-            o01 += gx * gy
-            o11 += gy * gy
-        else:
-            r = residual[i]
-            squares += r * r
-            r0 += gx * r
-            r1 += gy * r
-        i += 1
-    return squares, g00 - o00, g01 - o01, g11 - o11, r0, r1
-
-
 # ------------------------------------------------------------------------------ pair: tip
 @numba.njit(cache=True, nogil=True)
 def _tangent_costs(linear, extent, cap_px, directions, costs):
@@ -701,10 +583,10 @@ def _best_in_cap(linear, extent, cap_px, cap, t, scale):
 
 # ---------------------------------------------------------------------------- warm-up
 def warm_up() -> None:
-    """Compile every kernel of the segmentation (here, in :mod:`tracker.vision.pixel_graph`
-    and in :mod:`tracker.vision.shift_kernels`), or load it from the cache, on a tiny input
-    with the argument types the segmentation passes, so that the first frame does not wait
-    for it."""
+    """Compile every kernel of the segmentation (here, in :mod:`tracker.vision.pixel_graph`,
+    :mod:`tracker.vision.photometry_kernels` and :mod:`tracker.vision.shift_kernels`), or
+    load it from the cache, on a tiny input with the argument types the segmentation passes,
+    so that the first frame does not wait for it."""
     ys, xs, xy, index, dist = pixel_graph.warm_up()
     background = np.full(index.shape, 200, np.uint8)
     image = background - 160
@@ -717,11 +599,7 @@ def warm_up() -> None:
     # The base with a band, the tip without.
     ends(xy, w, var_w, dist, line, label, centres, covs, along, 0, -1, float(dist.max()),
          1.0, 2.0, 0.05)
-    rows, cols = (0, image.shape[0], 2), (0, image.shape[1], 2)
-    levels = background[::2, ::2].ravel()
-    usable, frame, level, _, _ = tone_sums(image, rows, cols, levels, levels > 0)
-    residual, out, _, _, _ = tone_residuals(frame, level, lut.astype(np.float64), np.nan)
-    noise_and_shift(residual, out, np.zeros((2, levels.size)), usable)
+    photometry_kernels.warm_up()
     shift_kernels.warm_up()
     directions = np.eye(3)
     tip_tangent(np.ones((8, 3)), np.ones(2), np.ones(2), directions, directions)

@@ -30,20 +30,18 @@ level they cannot be told apart, and do not need to be).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from tracker.vision import kernels, shift_kernels
+from tracker.vision import photometry_kernels, shift_kernels
 from tracker.vision.shift_pixels import ShiftSamples
 
 Array = np.ndarray
 
 LEVELS = np.arange(256, dtype=np.float64)
 _UNSATURATED = (LEVELS > 0) & (LEVELS < 255)  # per gray level: neither black nor saturated
-_X = LEVELS / 255.0 - 0.5  # the background's gray level, centred, as the fit's variable
 _MIN_SAMPLES = 50
 
 
@@ -152,48 +150,6 @@ def background_samples(background: Array, stride: int) -> BackgroundSamples:
     return BackgroundSamples(r0, c0, levels, gradient, _UNSATURATED.take(levels))
 
 
-def _solve_small(M, v) -> list[float]:
-    """Solve a symmetric positive definite system of 2 or 3 unknowns (``M`` nested sequences,
-    ``v`` a sequence) on Python floats by Cramer's rule: for so few unknowns numpy's LAPACK
-    call costs far more than the arithmetic. Zeros when the system is singular (a pivot of
-    its Gaussian elimination, a ratio of leading minors, at most 1e-12)."""
-    if len(v) == 2:
-        (a, b), (_, d) = M
-        p, q = v
-        det = a * d - b * b
-        if not (a > 1e-12 and det > 1e-12 * a):
-            return [0.0, 0.0]
-        return [(d * p - b * q) / det, (a * q - b * p) / det]
-    (a, b, c), (_, d, e), (_, _, f) = M
-    p, q, r = v
-    # The adjugate (cofactors) of the symmetric matrix.
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A + b * B + c * C
-    if not (a > 1e-12 and F > 1e-12 * a and det > 1e-12 * F):
-        return [0.0, 0.0, 0.0]
-    return [(A * p + B * q + C * r) / det, (B * p + D * q + E * r) / det,
-            (C * p + E * q + F * r) / det]
-
-
-_POWERS = np.stack([_X**k for k in range(5)])  # (5, 256): x^0 ... x^4 at every gray level
-_LEVELS_SQUARED = LEVELS**2
-
-
-def _tone_curve(counts: Array, sums: Array, degree: int) -> Array:
-    """The least-squares tone curve at every gray level from the per-level pixel counts and
-    sums of the frame's gray levels (the fit's variable takes only 256 values, so the normal
-    equations are sums over levels: ``sum_b counts(b) x(b)^(i + j)``)."""
-    if degree == 0:
-        scale = float(sums @ LEVELS) / max(float(counts @ _LEVELS_SQUARED), 1e-12)
-        return scale * LEVELS
-    n = degree + 1
-    moments = (_POWERS[: 2 * n - 1] @ counts).tolist()
-    M = [moments[i : i + n] for i in range(n)]
-    coef = _solve_small(M, (_POWERS[:n] @ sums).tolist())
-    return np.array(coef) @ _POWERS[:n]
-
-
 def fit_photometry(
     image: Array,
     background: Array,
@@ -230,58 +186,24 @@ def fit_photometry(
     and occluders take no part. The noise is the root mean square of the second fit's
     residual within the same bound; the shift is the least-squares fit of that residual to
     the background's gradient, scaled by the tone curve's slope at the background's mean
-    gray level (``gain``).
+    gray level (``gain``). All of it is one compiled kernel,
+    :func:`tracker.vision.photometry_kernels.fit`.
     """
     if samples is None:
         samples = background_samples(background, stride)
     height, width = image.shape
-    rows, cols = samples.rows.indices(height), samples.cols.indices(width)
-    # The sums over the grid are compiled kernels (the few thousand pixels in one loop each,
-    # where numpy took some twenty calls), the small solves stay here.
-    usable, frame, b_u8, counts, sums = kernels.tone_sums(
-        np.ascontiguousarray(image), rows, cols, samples.levels, samples.usable
+    n, lut, shift_x, shift_y, sigma, gain, dark, _ = photometry_kernels.fit(
+        np.ascontiguousarray(image), samples.rows.indices(height), samples.cols.indices(width),
+        samples.levels, samples.usable, samples.gradient, bool(normalise), bool(fit_shift),
+        _MIN_SAMPLES,
     )
-    n = frame.size
-    size = samples.levels.size
-    clipped = 1.0 - n / max(size, 1)
+    clipped = 1.0 - n / max(samples.levels.size, 1)
     if n < _MIN_SAMPLES:
         frame_u8 = image[samples.rows, samples.cols].ravel()
         sigma = robust_sigma(frame_u8.astype(np.float64) - samples.levels)
         return Photometry(LEVELS.astype(np.float32), np.zeros(2), sigma, 0.0, clipped, False)
-    mean_level = float(counts @ LEVELS) / n
-    lut = LEVELS
-    if normalise:
-        # A curvature needs a spread of gray levels, an offset at least two of them.
-        spread = math.sqrt(max(float(counts @ _LEVELS_SQUARED) / n - mean_level**2, 0.0))
-        degree = 2 if spread >= 12.0 else (1 if spread >= 3.0 else 0)
-        lut = _tone_curve(counts, sums, degree)
-    residual, out, gate, counts_out, sums_out = kernels.tone_residuals(frame, b_u8, lut, math.nan)
-    if normalise and out.any():
-        lut = _tone_curve(counts - counts_out, sums - sums_out, degree)
-        residual, out, _, _, _ = kernels.tone_residuals(frame, b_u8, lut, gate)
-    squares, g00, g01, g11, r0, r1 = kernels.noise_and_shift(
-        residual, out, samples.gradient, usable
-    )
-    n_in = n - int(np.count_nonzero(out))
-    sigma = math.sqrt(squares / n_in) if n_in > 10 else gate / 4.0
-    # The slope of the tone curve at the background's mean gray level.
-    level = min(max(round(mean_level), 1), 254)
-    below, at, above = lut[level - 1 : level + 2].tolist()
-    gain = 0.5 * (above - below)
-    shift = [0.0, 0.0]
-    if fit_shift and abs(gain) > 1e-6:
-        # frame(p) = f(bg(p - d)) ~ f(bg(p)) - f' grad(bg) . d on the inliers: the
-        # least-squares fit of the residual to the background's gradients (G and g . r from
-        # the kernel, the outliers' left out). Central differences are twice the gradient.
-        G = [[g00, g01], [g01, g11]]
-        shift = [-2.0 * d / gain for d in _solve_small(G, (r0, r1))]
-    # An offset of the frame does not scale with the light: contrasts are fractions of
-    # f(b) - f(0). (A gamma has no black level; f(0) of its fitted curve is the intercept of
-    # the curve's chord over the background's levels, which keeps contrasts to first order.)
-    bound = 0.25 * abs(at)
-    dark = min(max(float(lut[0]), -bound), bound) if normalise else 0.0
-    lut = np.maximum.accumulate(lut)
-    return Photometry(lut.astype(np.float32), np.array(shift), sigma, gain, clipped, True, dark)
+    return Photometry(lut.astype(np.float32), np.array([shift_x, shift_y]), sigma, gain,
+                      clipped, True, dark)
 
 
 _SIGNIFICANT_CHI2 = 13.8  # chi-square of 2 dof beyond which a shift is applied (p = 0.001)
