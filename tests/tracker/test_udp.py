@@ -8,7 +8,15 @@ import struct
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tests.tracker.test_joints import (
+    PROPERTY_SETTINGS,
+    assert_same_sample,
+    query_times,
+    sample_by_interpolation,
+)
 from tracker.io.datagrams import (
     ESTIMATE_STRUCT,
     JOINT_MAGIC,
@@ -27,7 +35,7 @@ from tracker.io.datagrams import (
     encode_segmented,
     marker_datagram_size,
 )
-from tracker.io.joints import JointStatus
+from tracker.io.joints import JointHistory, JointStatus
 from tracker.io.limits import joint_sample_in_range, joints_in_range
 from tracker.io.udp import EstimateSender, JointReceiver, MarkerReceiver
 from tracker.types import Estimate, Flag
@@ -303,6 +311,67 @@ def test_aligned_clock_removes_the_offset_and_the_network_jitter():
     arrival = JointReceiver(port=None, clock="arrival")
     arrival.add(JointPacket(1, 0.5, *ramp_q(0.5)), arrival_s=42.0)
     assert arrival.sample_times()[0] == 42.0
+
+
+CLOCKS = ("sender", "arrival", "aligned")
+
+
+def check_samples_against_the_array_path(receivers: dict, rng, queries: int = 6) -> None:
+    """Each clock's receiver samples at random times of every kind what the array path
+    interpolates from the kept samples on that clock, bit for bit; the aligned clock's times
+    are the sender's plus the smallest (arrival - sender) of the kept samples."""
+    kept = receivers["sender"].snapshot()
+    sender, arrival = kept.time_s, receivers["arrival"].sample_times()
+    offset_s = float(np.min(arrival - sender)) if sender.size else 0.0
+    times = {"sender": sender, "arrival": arrival, "aligned": sender + offset_s}
+    for clock in CLOCKS:
+        receiver = receivers[clock]
+        history = JointHistory(times[clock], kept.q, kept.q_dot)
+        candidates = query_times(times[clock], receiver.stale_after_s)
+        for time_s in rng.choice(candidates, min(queries, candidates.size), replace=False):
+            expected = sample_by_interpolation(history, time_s, receiver.stale_after_s)
+            assert_same_sample(receiver.sample(time_s), expected)
+    aligned = receivers["aligned"].sample_times()
+    assert aligned.tobytes() == times["aligned"].tobytes()
+
+
+@settings(max_examples=80, **PROPERTY_SETTINGS)
+@given(
+    history=st.sampled_from([2, 3, 8, 64]),
+    events=st.lists(
+        st.tuples(
+            st.sampled_from(["rates", "rates", "rates", "no rates", "restart"]),
+            st.sampled_from([1e-3, 1e-3, 2.5e-4, 0.05, 1e-9]),
+            st.booleans(),  # sample after it
+        ),
+        max_size=60,
+    ),
+    sender_start_s=st.sampled_from([0.0, 1.0, 1.7e9]),
+    arrival_start_s=st.sampled_from([100.0, 1e9]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_receiver_samples_bit_for_bit_what_the_array_path_interpolates(
+    history, events, sender_start_s, arrival_start_s, seed
+):
+    """Random streams (jitter, datagrams without rates, restarts, times so close that the
+    aligned clock rounds them together, histories that slide and wrap their rows), sampled
+    between datagrams on every clock: exactly the previous JointHistory.sample semantics."""
+    rng = np.random.default_rng(seed)
+    receivers = {c: JointReceiver(port=None, clock=c, history=history) for c in CLOCKS}
+    sequence, time_s = 0, sender_start_s
+    for kind, step_s, check in events:
+        if kind == "restart":  # far behind the newest: a restarted sender, history cleared
+            sequence, time_s = (sequence - 5000) % 2**32, sender_start_s + rng.uniform(0, 1)
+        else:
+            sequence, time_s = sequence + 1, time_s + step_s
+        jitter_s = rng.choice([0.0, rng.exponential(2e-4), rng.exponential(0.02)])
+        q, q_dot = rng.uniform(-1.0, 1.0, 3), rng.uniform(-3.0, 3.0, 3)
+        data = encode_joints(sequence, time_s, q, q_dot if kind == "rates" else None)
+        for receiver in receivers.values():
+            receiver.add_datagram(data, arrival_start_s + time_s + jitter_s)
+        if check:
+            check_samples_against_the_array_path(receivers, rng)
+    check_samples_against_the_array_path(receivers, rng, queries=40)
 
 
 def test_receiver_settings_are_checked():

@@ -18,8 +18,10 @@ make every later datagram look stale. Listeners bind to 127.0.0.1 unless told ot
 
 from __future__ import annotations
 
+import math
 import select
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -37,7 +39,7 @@ from tracker.io.datagrams import (
     encode_estimate,
     encode_joints,
 )
-from tracker.io.joints import RATE_WINDOW_S, JointHistory, JointSample
+from tracker.io.joints import RATE_WINDOW_S, JointHistory, JointSample, sample_joints
 from tracker.io.limits import JOINT_TIME_WINDOW_S
 from tracker.types import Estimate, Frame
 
@@ -51,6 +53,8 @@ DEFAULT_ESTIMATE_PORT = 25001
 DEFAULT_MARKER_PORT = 25002
 """Port the loop listens on for segmented-marker datagrams."""
 _RECEIVE_BUFFER_BYTES = 65536
+# A kept joint sample: sender time, arrival time, q (3), q_dot (3), arrival - sender (s).
+_JOINT_ROW = struct.Struct("=9d")
 CLOCK_JUMP_SAMPLES = 20
 """Consecutive datagrams that agree with each other but not with the kept history (their
 times jumped while their sequence went on) after which the sender's clock is taken to have
@@ -160,14 +164,19 @@ class JointReceiver:
         self.time_window_s = float(time_window_s)
         self.monotonic = monotonic
         self.counts = StreamCounts()
-        # Rows (sender time, arrival time, q, q_dot) in twice the history, compacted when
-        # full: the kept samples stay one contiguous, time-ordered slice, so interpolation is
-        # one searchsorted. Accepted samples wait in ``_pending`` as tuples and go in as one
-        # block when the history is read: a row written into numpy costs more than the rest
-        # of a datagram's handling.
-        self._rows = np.empty((2 * self.history, 8))
+        # Rows (_JOINT_ROW) in twice the history, compacted when full: the kept samples stay
+        # one contiguous, time-ordered slice, so interpolation is one search. Each accepted
+        # sample is packed straight into the rows' bytes (an item assignment into numpy
+        # costs more than the rest of a datagram's handling), so reading the history copies
+        # nothing.
+        self._rows = np.empty((2 * self.history, _JOINT_ROW.size // 8))
+        self._bytes = memoryview(self._rows).cast("B")
         self._start = self._end = 0
-        self._pending: list[tuple[float, ...]] = []
+        # The aligned clock's offset: no kept row's (arrival - sender) is below it (NaN
+        # counting as lowest, as in np.min), and while row ``_offset_row`` is kept it is that
+        # row's, hence the minimum; once that row has left, the minimum is taken again.
+        self._offset_s = math.inf
+        self._offset_row = -1
         self._newest: JointPacket | None = None
         self._newest_arrival_s = 0.0
         # Datagrams dropped for their time, consecutive and consistent among themselves:
@@ -292,9 +301,19 @@ class JointReceiver:
         return len(jumped)
 
     def _keep(self, packet: JointPacket, arrival_s: float) -> None:
-        self._pending.append((packet.time_s, arrival_s, *packet.q, *packet.q_dot))
-        if len(self._pending) >= self.history:
-            self._flush()  # nobody reads (an idle loop): bound the memory
+        end = self._end
+        if end == len(self._rows):
+            self._compact()
+            end = self._end
+        time_s, arrival_s = float(packet.time_s), float(arrival_s)
+        offset_s = arrival_s - time_s
+        at = end * _JOINT_ROW.size
+        _JOINT_ROW.pack_into(self._bytes, at, time_s, arrival_s, *packet.q, *packet.q_dot, offset_s)
+        if offset_s <= self._offset_s or offset_s != offset_s:
+            self._offset_s, self._offset_row = offset_s, end
+        self._end = end + 1
+        if self._end - self._start > self.history:
+            self._start += 1
         self._newest = packet
         self._newest_arrival_s = arrival_s
         self.counts.accepted += 1
@@ -302,27 +321,28 @@ class JointReceiver:
     def _clear(self) -> None:
         """Forget every kept sample (a restarted sender)."""
         self._start = self._end = 0
-        self._pending.clear()
+        self._offset_s, self._offset_row = math.inf, -1
 
-    def _flush(self) -> None:
-        """Move the pending samples into the rows, the newest ``history`` of them in one block."""
-        if not self._pending:
-            return
-        block = np.array(self._pending[-self.history :], dtype=float)
-        self._pending.clear()
-        n = len(block)
-        if self._end + n > len(self._rows):
-            keep = min(self._end - self._start, self.history - n)
-            self._rows[:keep] = self._rows[self._end - keep : self._end]
-            self._start, self._end = 0, keep
-        self._rows[self._end : self._end + n] = block
-        self._end += n
-        self._start = max(self._start, self._end - self.history)
+    def _compact(self) -> None:
+        """Move the kept rows to the front (the rows are full)."""
+        start, end = self._start, self._end
+        self._rows[: end - start] = self._rows[start:end]
+        self._start, self._end = 0, end - start
+        self._offset_row -= start
 
     def _kept(self) -> Array:
-        """The kept rows (sender time, arrival time, q, q_dot), oldest first: a view."""
-        self._flush()
+        """The kept rows (sender time, arrival time, q, q_dot, arrival - sender), oldest
+        first: a view."""
         return self._rows[self._start : self._end]
+
+    def _aligned_offset_s(self) -> float:
+        """Smallest (arrival - sender) over the kept rows (at least one), s: ``np.min``'s."""
+        if self._offset_row < self._start:  # the row of the minimum has left: look again
+            offsets = self._rows[self._start : self._end, 8]
+            self._offset_s = float(np.min(offsets))
+            # The newest row that holds it, to keep it longest (argmin: the first NaN if any).
+            self._offset_row = self._end - 1 - int(np.argmin(offsets[::-1]))
+        return self._offset_s
 
     @property
     def newest(self) -> JointPacket | None:
@@ -330,7 +350,7 @@ class JointReceiver:
         return self._newest
 
     def __len__(self) -> int:
-        return len(self._kept())
+        return self._end - self._start
 
     def sample_times(self) -> Array:
         """Times of the kept samples in this receiver's clock (see ``clock``), s."""
@@ -341,10 +361,9 @@ class JointReceiver:
         sender = rows[:, 0]
         if self.clock == "sender":
             return sender.copy()
-        arrival = rows[:, 1]
         if self.clock == "arrival":
-            return arrival.copy()
-        return sender + float(np.min(arrival - sender)) if sender.size else sender.copy()
+            return rows[:, 1].copy()
+        return sender + self._aligned_offset_s() if sender.size else sender.copy()
 
     def samples_after(self, time_s: float) -> tuple[Array, Array, Array]:
         """Kept samples later than ``time_s`` (receiver clock): times (n,), q, q_dot (n, 3)."""
@@ -369,9 +388,19 @@ class JointReceiver:
 
         Rates come from the datagrams; where they were not sent (``NO_RATES``) they are the
         slope of the values over ``rate_window_s`` around ``time_s``
-        (:meth:`tracker.io.joints.JointHistory.interpolate`).
+        (:meth:`tracker.io.joints.JointHistory.interpolate`). What ``snapshot().sample``
+        gives, bit for bit, reading only the rows around ``time_s``
+        (:func:`tracker.io.joints.sample_joints`).
         """
-        return self._history().sample(time_s, self.stale_after_s, rate_window_s)
+        rows = self._kept()
+        times_s, offset_s = rows[:, 1 if self.clock == "arrival" else 0], None
+        if self.clock == "aligned" and len(rows):
+            offset_s = self._aligned_offset_s()
+            if not math.isfinite(offset_s):  # a hand-fed NaN or infinite time
+                times_s, offset_s = self._times(rows), None
+        return sample_joints(
+            time_s, times_s, rows[:, 2:5], rows[:, 5:8], self.stale_after_s, rate_window_s, offset_s
+        )
 
 
 class JointStreamer:
