@@ -13,16 +13,17 @@ result maps onto the rows ``[tip, marker_0, ...]`` of each view of
 
 from __future__ import annotations
 
-import math
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from models.catheter import Catheter
 from models.imaging import PinholeView, Rig
 from tracker.types import Frame
-from tracker.vision import kernels
+from tracker.vision import kernels, pair_kernels
 from tracker.vision.background import CameraSegmenter
 from tracker.vision.segmentation import Segmenter, ViewSegmentation, frame_points
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
@@ -104,51 +105,6 @@ def _cap(n: int, angle_rad: float) -> Array:
 _FINE = _cap(100, _CAP_RAD)  # about 3 degrees apart
 
 
-def _tip_from_band(
-    cameras: Sequence[PinholeView],
-    views: Sequence[ViewSegmentation],
-    centre_w: Array,
-    jacobians: Sequence[Array],
-    half_band_mm: float,
-) -> tuple[Array, float]:
-    """The tip in {W}: the tip band's centre moved half a band along the 3-D tangent.
-
-    The band's centroid is the projection of its centre in every view whatever the
-    foreshortening, so the centre ``centre_w`` is triangulated from the centroids. The
-    tangent t is the unit vector that best explains, in every view, where the image ends
-    past the centroid: ``half_band t`` projects to an image vector p (short when t points at
-    the camera), and the end disc of the tube sticks out past the tip by
-    ``pi/4 R |sin a|`` (R the tube's image radius, a the angle between t and the image
-    plane). Per view the residuals are p's offset across the measured direction and the
-    measured extent minus ``p . direction + pi/4 R |sin a|``, px; their squares are summed
-    over the views and minimised over the sphere of directions (a coarse grid, then a fine
-    cap around its best). A view where the tip points at the camera has a short p and an end
-    that is a disc: its poorly defined direction then costs little, which is what makes this
-    robust where intersecting the planes of the image directions is not.
-
-    ``cameras`` and ``views`` are the views that see the tip band, ``jacobians`` their
-    projection Jacobians at the centre (px/mm). Returns the tip in {W} and the misfit (the
-    smallest sum of squared residuals, px^2).
-    """
-    n = len(views)
-    # For directions T (columns), linear @ T is, per view (in rows): p's x and y, p's part
-    # along the measured direction, and sin a (the part along the viewing ray).
-    linear = np.empty((4 * n, 3))
-    JT = half_band_mm * np.array(jacobians)  # (views, 2, 3)
-    linear[:n], linear[n : 2 * n] = JT[:, 0], JT[:, 1]
-    directions = np.array([seg.tip_direction for seg in views])
-    linear[2 * n : 3 * n] = (directions[:, None, :] @ JT)[:, 0]
-    for k, camera in enumerate(cameras):
-        x_cam = camera.R_cam_w @ centre_w + camera.t_cam_w
-        linear[3 * n + k] = (x_cam / math.sqrt(x_cam @ x_cam)) @ camera.R_cam_w  # the ray
-    extent = np.array([seg.tip_extent_px for seg in views])
-    cap_px = np.array([0.25 * math.pi * seg.tube_radius_px for seg in views])
-    # Seen end-on the band is a disc and its measured direction means little: the end disc
-    # adds to the extent along it whatever it is (kernels.tip_tangent).
-    tangent, misfit = kernels.tip_tangent(linear, extent, cap_px, _COARSE, _FINE)
-    return centre_w + half_band_mm * tangent, misfit
-
-
 def segment_pair(
     segmenter: Segmenter,
     images: Sequence[Array],
@@ -181,16 +137,49 @@ def segment_pair(
 
 
 _NUDGE_MM = 1e-3  # finite-difference step of the projection Jacobians at the tip band
-_NUDGES = np.vstack([np.zeros(3), _NUDGE_MM * np.eye(3)])
-_NUDGES.flags.writeable = False
-_EYE2 = np.eye(2)
-_EYE2.flags.writeable = False
 
 
-def _finite_point(p: Array) -> bool:
-    """Whether both coordinates of a point (2,) are finite (np.isfinite costs more for two
-    numbers)."""
-    return math.isfinite(p[0]) and math.isfinite(p[1])
+@functools.lru_cache(maxsize=16)
+def _cameras(rig: Rig) -> tuple[Array, ...]:
+    """A pinhole rig's cameras stacked view by view, read-only, as
+    :func:`pair_kernels.check_rows` takes them: R_cam_w (V, 3, 3), t_cam_w (V, 3), the
+    rotations OpenCV projects with (V, 3, 3: of the Rodrigues vectors, as
+    :meth:`PinholeView.project`), fx, fy, cx, cy (V, 4) and the distortion (V, 5)."""
+    views = rig.views
+    R_project = [cv2.Rodrigues(cv2.Rodrigues(np.array(v.R_cam_w))[0])[0] for v in views]
+    arrays = (
+        np.array([v.R_cam_w for v in views]),
+        np.array([v.t_cam_w for v in views]),
+        np.array(R_project),
+        np.array([[v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2]] for v in views]),
+        np.array([v.dist for v in views]),
+    )
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+def _stacked(views: tuple[ViewSegmentation, ...], tip_rows: Array) -> tuple[Array, ...]:
+    """The views' points, covariances, markers found and tip bands in the arrays of
+    :func:`pair_kernels.check_rows` (``uv``, ``cov``, ``found``, ``band``)."""
+    V, R = len(views), tip_rows.shape[0]
+    uv = np.empty((V, R, 2))
+    cov = np.empty((V, R, 2, 2))
+    found = np.empty((V + 1, R), bool)
+    band = np.empty((V, pair_kernels.BAND_ROWS, 2))
+    found[V] = tip_rows
+    for k, view in enumerate(views):
+        uv[k, 0] = view.tip_px
+        uv[k, 1:] = view.markers_px
+        cov[k, 0] = view.tip_cov
+        cov[k, 1:] = view.markers_cov
+        found[k, 1:] = view.markers_found
+        b = band[k]
+        b[pair_kernels.BAND_PX] = view.tip_band_px
+        b[pair_kernels.BAND_DIRECTION] = view.tip_direction
+        b[pair_kernels.BAND_EXTENT_RADIUS] = (view.tip_extent_px, view.tube_radius_px)
+        b[pair_kernels.BAND_COV :] = view.tip_band_cov
+    return uv, cov, found, band
 
 
 def combine_views(
@@ -207,91 +196,66 @@ def combine_views(
     rig : Rig, optional
         The calibrated pinhole rig of the images. With it, two cross-view steps run: rows
         found in two or more views whose reprojections miss a view's point by more than the
-        epipolar gate are withheld (``rejected``); and when two or more views see the tip
-        band, the tip is placed in 3-D from the band's centre and the catheter's tangent and
-        projected back into those views. This removes the bias of a single view's far end
-        when the tip points toward the camera (the end disc of the tube sticks out past the
-        end point).
+        epipolar gate (or four times the points' spread) are withheld (``rejected``); and
+        when two or more views see the tip band, the tip is placed in 3-D from the band's
+        centre and the catheter's tangent and projected back into those views. This removes
+        the bias of a single view's far end when the tip points toward the camera (the end
+        disc of the tube sticks out past the end point).
+
+    Notes
+    -----
+    The tip: the band's centroid is the projection of its centre in every view whatever the
+    foreshortening, so the centre is triangulated from the centroids. The tangent t is the
+    unit vector that best explains, in every view, where the image ends past the centroid:
+    ``half_band t`` projects to an image vector p (short when t points at the camera), and
+    the end disc of the tube sticks out past the tip by ``pi/4 R |sin a|`` (R the tube's
+    image radius, a the angle between t and the image plane). Per view the residuals are
+    p's offset across the measured direction and the measured extent minus
+    ``p . direction + pi/4 R |sin a|``, px; their squares are summed over the views and
+    minimised over the sphere of directions (:func:`tracker.vision.kernels.tip_tangent`: a
+    coarse grid, then a fine cap around its best). A view where the tip points at the camera
+    has a short p and an end that is a disc: its poorly defined direction then costs little,
+    which is what makes this robust where intersecting the planes of the image directions
+    is not.
+
+    The arithmetic runs in two compiled calls (:mod:`tracker.vision.pair_kernels`) with the
+    tangent's search between them.
     """
     s = segmenter.settings
     views = tuple(views)
-    rows = [frame_points(view) for view in views]
-    uv = [r[0] for r in rows]
-    cov = [r[1] for r in rows]
-    n_rows = uv[0].shape[0]
     if rig is None:
-        return PairSegmentation(views, tuple(uv), tuple(cov), np.zeros(n_rows, bool))
+        rows = [frame_points(view) for view in views]
+        uv, cov = tuple(r[0] for r in rows), tuple(r[1] for r in rows)
+        return PairSegmentation(views, uv, cov, np.zeros(uv[0].shape[0], bool))
     if rig.kind != "pinhole":
         raise ValueError("combine_views needs the pinhole rig the images were taken with")
-    tip_rows = segmenter.frame_tip_rows
-    banded = [k for k, view in enumerate(views) if _finite_point(view.tip_band_px)]
-    # Epipolar check: each row on its own points; the tip by its band centroids where two or
-    # more views see the band (a far end is half a band away from a band's centre).
-    check = uv
-    if len(banded) >= 2:
-        check = [u.copy() for u in uv]
-        for k, view in enumerate(views):
-            check[k][tip_rows] = view.tip_band_px if k in banded else np.nan
-    # A few points: Python floats from here on, numpy for the batches of points.
-    listed = [c.tolist() for c in check]
-    groups: dict[tuple[int, ...], list[int]] = {}
-    for row in range(n_rows):
-        seen = tuple(k for k, points in enumerate(listed) if _finite_point(points[row]))
-        if len(seen) >= 2:
-            groups.setdefault(seen, []).append(row)
-    rejected = [False] * n_rows
-    # The tip band's centre, projected with three nudged copies (the projection Jacobian
-    # there by finite differences) in the same call as its group's points.
-    centre_w = None
-    centre_px: dict[int, Array] = {}
-    for seen, members in groups.items():
-        sub = rig.subset(seen)
-        everyone = len(members) == n_rows
-        points = sub.reconstruct(*(check[k] if everyone else check[k][members] for k in seen))
-        m = len(members)
-        if members[0] == 0:
-            centre_w = points[0]
-            points = np.vstack([points, centre_w + _NUDGES])
-        residual = [0.0] * m
-        variance = [0.0] * m
-        for k, camera in zip(seen, sub.views, strict=True):
-            projected = camera.project(points)
-            if members[0] == 0:
-                centre_px[k] = projected[m:]
-            covariances = cov[k].tolist()
-            for j, ((u, v), row) in enumerate(zip(projected[:m].tolist(), members, strict=True)):
-                du, dv = u - listed[k][row][0], v - listed[k][row][1]
-                residual[j] = max(residual[j], math.sqrt(du * du + dv * dv))
-                variance[j] += covariances[row][0][0] + covariances[row][1][1]
-        for j, row in enumerate(members):
-            spread = math.sqrt(variance[j]) if math.isfinite(variance[j]) else 0.0
-            rejected[row] = residual[j] > max(s.epipolar_gate_px, 4.0 * spread)
-    refined = bool(
-        len(banded) >= 2
-        and not rejected[0]
-        and all(math.isfinite(views[k].tip_extent_px * views[k].tube_radius_px) for k in banded)
-    )
-    if refined:
-        half_band = 0.5 * s.band_length_mm
-        jacobians = [(centre_px[k][1:] - centre_px[k][0]).T / _NUDGE_MM for k in banded]
-        tip_w, misfit = _tip_from_band(
-            [rig.views[k] for k in banded], [views[k] for k in banded], centre_w, jacobians,
-            half_band,
+    if len(views) != rig.n_views:
+        raise ValueError(
+            f"need one segmentation per view ({', '.join(rig.names)}), got {len(views)}"
         )
-        offset = tip_w - centre_w
-        for k, J in zip(banded, jacobians, strict=True):
-            px_per_mm = math.sqrt(max(a * a + b * b + c * c for a, b, c in J.tolist()))
-            # The tangent's uncertainty, and what the views disagree on (2 residuals per
-            # view for 2 unknowns), as a variance of the tip in the image.
-            extra = (half_band * px_per_mm * s.tip_direction_sigma_rad) ** 2 + 0.5 * misfit
-            # Half a band from the centre: first order is exact to far below a pixel.
-            uv[k][tip_rows] = centre_px[k][0] + J @ offset
-            cov[k][tip_rows] = views[k].tip_band_cov + extra * _EYE2
-    if any(rejected):
-        for u, c in zip(uv, cov, strict=True):
-            u[rejected] = np.nan
-            c[rejected] = np.nan
-    return PairSegmentation(views, tuple(uv), tuple(cov), np.array(rejected), refined)
+    uv, cov, found, band = _stacked(views, segmenter.frame_tip_rows)
+    half_band = 0.5 * float(s.band_length_mm)
+    status, rejected, refined, centre_w, geometry, linear, extent, cap_px = (
+        pair_kernels.check_rows(
+            uv, cov, found, band, *_cameras(rig), float(s.epipolar_gate_px), half_band,
+            _NUDGE_MM,
+        )
+    )  # fmt: skip
+    if status != pair_kernels.OK:
+        raise ValueError(
+            "cannot triangulate a row of the views' points: their viewing rays are parallel"
+            " (a point on the line through the camera centres?)"
+            if status == pair_kernels.PARALLEL_RAYS
+            else "a row of the views' points triangulates at or behind a camera (a pinhole"
+            " view needs depth > 0)"
+        )
+    if refined:
+        tangent, misfit = kernels.tip_tangent(linear, extent, cap_px, _COARSE, _FINE)
+        pair_kernels.place_tip(
+            uv, cov, found, band, rejected, centre_w, geometry, tangent, misfit, half_band,
+            float(s.tip_direction_sigma_rad),
+        )  # fmt: skip
+    return PairSegmentation(views, tuple(uv), tuple(cov), rejected, refined)
 
 
 class PairSegmenter:
@@ -300,10 +264,11 @@ class PairSegmenter:
     One :class:`tracker.vision.background.CameraSegmenter` per view of the rig (its
     background model follows slow changes of the scene and re-registers a camera that moved;
     its region of interest follows the catheter), then the cross-view steps of
-    :func:`combine_views`. Making it loads the compiled kernels of the segmentation (or
-    compiles them, a few seconds the first time on a machine; through its
-    :class:`Segmenter`, :func:`tracker.vision.kernels.warm_up`), so the first frame does not
-    wait for them.
+    :func:`combine_views`. Making it loads the compiled kernels of the segmentation and of
+    the cross-view steps (or compiles them, a few seconds the first time on a machine;
+    through its :class:`Segmenter`, :func:`tracker.vision.kernels.warm_up`, and
+    :func:`tracker.vision.pair_kernels.warm_up`), so the first frame does not wait for
+    them.
 
     Parameters
     ----------
@@ -337,6 +302,7 @@ class PairSegmenter:
             )
         self.rig = rig
         self.segmenter = Segmenter(catheter, settings)
+        pair_kernels.warm_up()
         o = np.asarray(o_b_w_mm, float)
         self.cameras = tuple(
             CameraSegmenter(self.segmenter, _sized(bg, view, name), view.project(o), name, k)
