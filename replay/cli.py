@@ -94,6 +94,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="GRAY",
         help="sensor noise of the rendered images, gray levels (default 2)",
     )
+    demo.add_argument(
+        "--no-keep-awake",
+        action="store_true",
+        help="let the processors sleep deeply between frames (default: kept awake while the"
+        " loop runs, where permitted; docs/live.md)",
+    )
     _add_nuisance(demo)
     add_rerun_args(demo, save_default=DEMO_RRD, bind_option=True)
     demo.set_defaults(run=_command("demo"))
@@ -607,6 +613,12 @@ def _add_track(sub) -> None:
         action="store_true",
         help="leave the loop's thread to the scheduler (default: on a processor of its own,"
         " the other threads off it, with two processors or more; docs/live.md)",
+    )
+    run.add_argument(
+        "--no-keep-awake",
+        action="store_true",
+        help="let the processors sleep deeply between frames (default: kept awake through"
+        " /dev/cpu_dma_latency while the loop runs, where permitted; docs/live.md)",
     )
     p.set_defaults(run=_command("track"))
 

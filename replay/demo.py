@@ -80,6 +80,9 @@ class DemoSettings:
     image_nuisance : ImagingNuisance
         How each frame differs from the backgrounds (gain drift and flicker, offset, gamma,
         vibration, a moved camera; none by default).
+    keep_awake : bool
+        The processors kept out of their deep sleep states while the loop runs
+        (:class:`tracker.live.wake.WakeLatency`; where permitted).
     """
 
     seconds: float = 15.0
@@ -94,6 +97,7 @@ class DemoSettings:
     start_delay_s: float = 0.3
     image_noise_gray: float = RenderSettings().noise_sigma_gray
     image_nuisance: ImagingNuisance = ImagingNuisance()
+    keep_awake: bool = True
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -405,6 +409,9 @@ def report_lines(
         dropped, stalls = summary.sink_dropped.get(name, 0), summary.sink_stalls.get(name, 0)
         lines.append(f"| {name}: frames dropped / waits (behind) | {dropped} / {stalls} |")
     lines.append(f"| image pairs rendered too late for real time | {late_frames} |")
+    if summary.kept_awake is not None:
+        awake = "yes" if summary.kept_awake else "no (not permitted: frames start cold)"
+        lines.append(f"| processors kept awake between frames | {awake} |")
     if rrd_path is not None:
         size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan
         lines.append(f"| rerun recording | {rrd_path} ({size:.1f} MB) |")
@@ -485,6 +492,7 @@ def run_demo(
             jpeg_quality=settings.jpeg_quality,
             application_id="cathtrack-demo",
             keep_serving=True,
+            keep_awake=settings.keep_awake,
         )
         with LiveSession(
             live_settings,

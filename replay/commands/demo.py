@@ -18,5 +18,6 @@ def run(args: argparse.Namespace) -> int:
         image_every=args.image_every,
         image_noise_gray=args.image_noise_gray,
         image_nuisance=nuisance_from_args(args),
+        keep_awake=not args.no_keep_awake,
     )
     return run_demo(settings, args)

@@ -117,6 +117,7 @@ def _session_settings(args: argparse.Namespace, kind: str) -> SessionSettings:
         images=not args.no_images,
         image_every=args.image_every,
         pin=not args.no_pin,
+        keep_awake=not args.no_keep_awake,
     )
 
 

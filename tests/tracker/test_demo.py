@@ -143,6 +143,11 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
     thirds = table_value(out, "latency p50 in each third of the run (ms)").split(" / ")
     assert len(thirds) == 3 and all(0 < float(ms) <= float(p99) for ms in thirds), thirds
     assert int(table_value(out, "image pairs rendered too late for real time")) >= 0
+    # Kept awake where this process may write the PM QoS file, said either way.
+    permitted = os.access("/dev/cpu_dma_latency", os.W_OK)
+    assert table_value(out, "processors kept awake between frames").startswith(
+        "yes" if permitted else "no"
+    )
     assert str(rrd) in table_value(out, "rerun recording")
 
 

@@ -59,6 +59,7 @@ from tracker.live.signals import StopRequest
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
 from tracker.live.summary import LatencyRecorder, LiveSummary
+from tracker.live.wake import WakeLatency
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag, Frame, Observation
 
@@ -172,6 +173,10 @@ class LiveTracker:
         During :meth:`run`, keep the loop's thread on a processor of its own and the
         process's other threads and child processes off it
         (:class:`~tracker.live.affinity.LoopAffinity`; Linux, two processors or more).
+    keep_awake : bool
+        During :meth:`run`, keep the processors out of their deep sleep states, which lose
+        the caches between frames (:class:`~tracker.live.wake.WakeLatency`; Linux, needs
+        write access to ``/dev/cpu_dma_latency``, said once when missing).
     """
 
     def __init__(
@@ -191,6 +196,7 @@ class LiveTracker:
         prime_lead_s: float | None = PRIME_LEAD_S,
         rehearse: bool = True,
         pin: bool = True,
+        keep_awake: bool = False,
     ) -> None:
         self.reconstructor = reconstructor
         self.estimator = estimator
@@ -206,6 +212,7 @@ class LiveTracker:
         self.rehearse = rehearse and callable(getattr(segmenter, "rehearse", None))
         self._settles = callable(getattr(segmenter, "settle", None))
         self.affinity = LoopAffinity() if pin else None
+        self.wake = WakeLatency(report=report) if keep_awake else None
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
         self.priming = PrimeTiming()  # how long priming takes, the rehearsal included
         self._last_images = None  # the last frame's images, for the rehearsal
@@ -651,6 +658,8 @@ class LiveTracker:
             if self.affinity is not None:
                 capture = self._capture
                 self.affinity.apply(() if capture is None else (capture.thread_id,))
+            if self.wake is not None:
+                self.summary.kept_awake = self.wake.hold()
             if self._capture is not None:
                 poll_s = self._capture.poll_s
                 entries = self._capture.items(lambda: self.wait_s(self.monotonic(), poll_s))
@@ -694,6 +703,8 @@ class LiveTracker:
             cv2.setNumThreads(cv_threads)
             if self.affinity is not None:
                 self.affinity.restore()
+            if self.wake is not None:
+                self.wake.release()
             self.summary.stop_reason = reason
             self.summary.duration_s = self.monotonic() - started
             try:

@@ -93,6 +93,9 @@ class SessionSettings:
     pin : bool
         The loop's thread on a processor of its own during the run, the other threads and
         child processes off it (:class:`tracker.live.affinity.LoopAffinity`).
+    keep_awake : bool
+        The processors kept out of their deep sleep states during the run
+        (:class:`tracker.live.wake.WakeLatency`).
     """
 
     estimator: str = "ukf"
@@ -114,6 +117,7 @@ class SessionSettings:
     igtl_queue: int = 8
     record_queue: int = 512
     pin: bool = True
+    keep_awake: bool = True
 
     def __post_init__(self) -> None:
         if self.image_every < 1:
@@ -322,6 +326,7 @@ class LiveSession:
                 segmenter=segmenter,
                 report=report,
                 pin=settings.pin,
+                keep_awake=settings.keep_awake,
             )
             if viewer_sink is not None:
                 viewer_sink.summary = self.tracker.summary

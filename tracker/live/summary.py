@@ -80,6 +80,9 @@ class LiveSummary:
     # The loop's time per stage up to the estimate (segmentation, joints and reconstruction,
     # estimator), p50 / p99 / max each, ms: where the latency goes.
     stage_ms: dict[str, dict[str, float]] = field(default_factory=dict)
+    # Whether the processors were kept out of their deep sleep states during the run
+    # (tracker.live.wake; None: not asked).
+    kept_awake: bool | None = None
     duration_s: float = 0.0
     stop_reason: str = ""
 
@@ -156,6 +159,11 @@ class LiveSummary:
                     f"{name} {ms['p50']:.2f} / {ms['p99']:.2f} ms"
                     for name, ms in self.stage_ms.items()
                 )
+            )
+        if self.kept_awake is not None:
+            out.append(
+                "  processors kept awake between frames: "
+                + ("yes" if self.kept_awake else "no (not permitted: frames start cold)")
             )
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
