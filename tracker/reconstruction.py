@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models import _imaging_kernels
 from models.catheter import Catheter
 from models.imaging import Rig
 from models.pose import Pose
@@ -68,8 +69,99 @@ class Reconstructor:
         self._previous: tuple[Array, Array, Array] | None = None  # one-row time, tip, cov
 
     def observe(self, frame: Frame) -> Observation:
-        """Reconstruct one frame. Points missing in one view become single-view measurements."""
-        return self.observe_batch([frame])[0]
+        """Reconstruct one frame. Points missing in one view become single-view measurements.
+
+        Exactly :meth:`observe_batch` of ``[frame]``; the usual live frame (every point in
+        every view) takes a shorter path with the same arithmetic, any other the batch one.
+        """
+        observation = self._observe_usual(frame)
+        return self.observe_batch([frame])[0] if observation is None else observation
+
+    def _observe_usual(self, frame: Frame) -> Observation | None:
+        """:meth:`observe` of a frame with every point finite in every view, finite joint
+        values and covariances that are clearly fine; None for any other frame, with the
+        state untouched, for :meth:`observe_batch` to handle (or name what is wrong).
+
+        The live loop's path, one frame at a time: each call to numpy costs cache misses
+        there, so the checks are on plain floats and a pinhole rig without distortion goes
+        straight to its compiled kernels. Every number is computed by the same operations,
+        in the same order and on arrays of the same shapes as on the batch path, so the
+        results are identical to the bit.
+        """
+        P, V = self.n_points, self.rig.n_views
+        t = frame.time_s
+        if not isinstance(t, float | int) or len(frame.uv) != V:
+            return None
+        try:
+            q = np.array(frame.q, dtype=float)
+            uv = np.array(frame.uv, dtype=float)  # (V, P, 2)
+            cov = np.array(frame.cov, dtype=float)  # (V, P, 2, 2)
+        except (TypeError, ValueError):
+            return None
+        if q.shape != (3,) or uv.shape != (V, P, 2) or cov.shape != (V, P, 2, 2):
+            return None
+        finite = math.isfinite
+        if not all(map(finite, q.tolist())) or not all(map(finite, uv.ravel().tolist())):
+            return None
+        for entries in cov.reshape(V, 4 * P).tolist():
+            if not all(map(finite, entries)):
+                return None
+            # Rig.reconstruct_with_covariance's check, per view: symmetric to the same
+            # tolerance (the same float operations), and positive semi-definite with ten times
+            # its margin (math.hypot may differ from numpy's in the last bit).
+            scale = max(1e-300, max(map(abs, entries)))
+            for a, b, c, d in zip(*[iter(entries)] * 4, strict=True):
+                if abs(b - c) > 1e-9 * scale or (
+                    0.5 * (a + d) - math.hypot(0.5 * (a - d), c) < -1e-13 * scale
+                ):
+                    return None
+        uv = uv.swapaxes(0, 1).reshape(P, V, 2)  # a C-contiguous copy, as the batch path's
+        cov = cov.swapaxes(0, 1).reshape(P, V, 2, 2)
+        cams = self.rig._cameras
+        if cams is not None and not cams.distorted:
+            # What Rig._triangulate and Rig._propagate call, without their re-checks. A point
+            # whose rays are parallel is NaN, which propagate flags as behind a camera too.
+            points_w, _ = _imaging_kernels.triangulate(
+                uv, cams.principal, cams.focal, cams.R_cam_w, cams.t_cam_w
+            )
+            cov_w, behind = _imaging_kernels.propagate(
+                points_w, cov, cams.R_cam_w, cams.t_cam_w, cams.inverse_focal
+            )
+            if any(behind.tolist()):
+                return None
+        else:
+            points_w = self.rig._triangulate(uv)
+            cov_w = self.rig._propagate(points_w, cov)
+        R_w_b = self.pose.R_w_b
+        points_b = (points_w - self.pose.o_b_w_mm) @ R_w_b  # Pose.base_from_world
+        covs_b = R_w_b.T @ cov_w @ R_w_b  # Pose.covariance_to_base
+        q_dot = None if frame.q_dot is None else np.asarray(frame.q_dot, dtype=float)
+        t = float(t)
+        velocity = {}
+        previous = self._previous
+        if previous is not None and q_dot is not None:
+            dt = t - float(previous[0][0])
+            if 0 < dt <= self.max_velocity_gap_s:
+                if dt == math.inf:
+                    return None  # velocity_from_positions names the interval
+                # velocity_from_positions on one frame: dt**2 is dt * dt in numpy.
+                tip, tip_cov = points_b[0], covs_b[0]
+                velocity = dict(
+                    velocity_b_mm_s=(tip - previous[1][0]) / dt,
+                    velocity_cov_b=(tip_cov + previous[2][0]) / (dt * dt),
+                    velocity_tip_cov_b=tip_cov / dt,
+                )
+        self._previous = (np.array([t]), points_b[:1], covs_b[:1])
+        return Observation(
+            time_s=t,
+            q=q,
+            q_dot=q_dot,
+            tip_b_mm=points_b[0],
+            tip_cov_b=covs_b[0],
+            markers_b_mm=points_b[1:],
+            markers_cov_b=covs_b[1:],
+            **velocity,
+        )
 
     def observations(self, frames: Iterable[Frame]) -> Iterator[Observation]:
         for frame in frames:
