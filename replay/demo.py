@@ -410,7 +410,7 @@ def report_lines(
         lines.append(f"| {name}: frames dropped / waits (behind) | {dropped} / {stalls} |")
     lines.append(f"| image pairs rendered too late for real time | {late_frames} |")
     if summary.kept_awake is not None:
-        awake = "yes" if summary.kept_awake else "no (not permitted: frames start cold)"
+        awake = "yes" if summary.kept_awake else "no (frames may start cold)"
         lines.append(f"| processors kept awake between frames | {awake} |")
     if rrd_path is not None:
         size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan

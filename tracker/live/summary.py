@@ -163,7 +163,7 @@ class LiveSummary:
         if self.kept_awake is not None:
             out.append(
                 "  processors kept awake between frames: "
-                + ("yes" if self.kept_awake else "no (not permitted: frames start cold)")
+                + ("yes" if self.kept_awake else "no (frames may start cold)")
             )
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -60,9 +61,13 @@ class WakeLatency:
         return self._fd is not None
 
     def hold(self) -> bool:
-        """Put the bound in force; False (and one report) when it cannot be."""
+        """Put the bound in force; False when it cannot be (reported on Linux, where
+        access to the file is what is missing)."""
         if self._fd is not None:
             return True
+        if not sys.platform.startswith("linux"):
+            self.problem = "keeping the processors awake needs Linux's PM QoS"
+            return False  # nothing a user could change: not reported
         try:
             fd = os.open(self.path, os.O_WRONLY)
         except OSError as exc:
