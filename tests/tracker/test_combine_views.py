@@ -23,6 +23,7 @@ from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -501,3 +502,35 @@ print(repr((before, versions(), result.tip_refined)))
     assert after == before
     for name, (count, nogil, cache) in before.items():  # helpers are inlined: no version
         assert nogil and cache == "FunctionCache" and count == int(name[0] != "_"), name
+
+
+@pytest.mark.parametrize(
+    "dist",
+    [
+        np.zeros(5),
+        np.array([-0.21, 0.08, 0.0012, -0.0009, -0.015]),
+        np.array([0.12, -0.3, -0.002, 0.0015, 0.4]),
+    ],
+)
+def test_the_written_out_camera_model_is_opencvs(dist):
+    """pair_kernels' projection and undistortion against cv2.projectPoints and
+    cv2.undistortPoints (PinholeView's criteria) on 2000 points spread over the image."""
+    from tracker.vision import pair_kernels
+
+    view = PinholeView.look_at(
+        np.array([30.0, -380.0, 60.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]), 2500.0,
+        dist=dist,
+    )  # fmt: skip
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-60.0, 60.0, (2000, 3))
+    R = cv2.Rodrigues(cv2.Rodrigues(np.array(view.R_cam_w))[0])[0]
+    K = np.array(view.K)
+    intrinsics = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    k = np.asarray(view.dist, float)
+    ours = np.array([pair_kernels._project(R, view.t_cam_w, intrinsics, k, *p) for p in points])
+    np.testing.assert_allclose(ours, view.project(points), rtol=0.0, atol=1e-9)
+    pixels = view.project(points)
+    ideal = np.array([pair_kernels._undistort(u, v, intrinsics, k) for u, v in pixels])
+    np.testing.assert_allclose(ideal, view.undistort(pixels), rtol=0.0, atol=1e-9)
+    if dist.any():  # the test sees the distortion
+        assert np.abs(ideal - pixels).max() > 1.0
