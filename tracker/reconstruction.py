@@ -115,8 +115,10 @@ class Reconstructor:
                     0.5 * (a + d) - math.hypot(0.5 * (a - d), c) < -1e-13 * scale
                 ):
                     return None
-        uv = uv.swapaxes(0, 1).reshape(P, V, 2)  # a C-contiguous copy, as the batch path's
-        cov = cov.swapaxes(0, 1).reshape(P, V, 2, 2)
+        # C-contiguous copies, as the batch path's: the kernels were compiled for those, and
+        # any other layout would compile (or load) another version on the first frame.
+        uv = np.ascontiguousarray(uv.swapaxes(0, 1))  # (P, V, 2)
+        cov = np.ascontiguousarray(cov.swapaxes(0, 1))  # (P, V, 2, 2)
         cams = self.rig._cameras
         if cams is not None and not cams.distorted:
             # What Rig._triangulate and Rig._propagate call, without their re-checks. A point

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -214,3 +217,34 @@ def _outcome(function, argument):
         return function(argument)
     except (TypeError, ValueError) as error:
         return error
+
+
+def test_the_usual_frame_compiles_nothing():
+    """The single-frame path hands the compiled kernels arrays of the layout the rig warmed
+    them up with: a live session's first frame loads or compiles nothing (in a fresh
+    interpreter, as compiled versions only accumulate)."""
+    script = """
+import numpy as np
+from models import _imaging_kernels as K
+from tests.tracker.test_reconstruction_single import _frames, _scene
+from tracker.reconstruction import Reconstructor
+scene = _scene("pinhole")
+reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
+frames, unusual = _frames(scene, 0)
+before = (len(K.triangulate.signatures), len(K.propagate.signatures))
+batch = []
+reconstructor.observe_batch = lambda frames: batch.append(1) or [None]  # counted, not run
+observations = [reconstructor.observe(f) for i, f in enumerate(frames[:3]) if i not in unusual]
+after = (len(K.triangulate.signatures), len(K.propagate.signatures))
+print(repr((before, after, len(observations), len(batch))))
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    before, after, n, batch = eval(out.stdout.strip().splitlines()[-1])
+    assert n >= 2 and batch == 0 and before == (1, 1)
+    assert after == before
