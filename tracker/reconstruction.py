@@ -134,9 +134,8 @@ class Reconstructor:
         else:
             points_w = self.rig._triangulate(uv)
             cov_w = self.rig._propagate(points_w, cov)
-        R_w_b = self.pose.R_w_b
-        points_b = (points_w - self.pose.o_b_w_mm) @ R_w_b  # Pose.base_from_world
-        covs_b = R_w_b.T @ cov_w @ R_w_b  # Pose.covariance_to_base
+        points_b = self.pose.base_from_world(points_w)
+        covs_b = self.pose.covariance_to_base(cov_w)
         q_dot = None if frame.q_dot is None else np.asarray(frame.q_dot, dtype=float)
         t = float(t)
         velocity = {}
@@ -145,13 +144,12 @@ class Reconstructor:
             dt = t - float(previous[0][0])
             if 0 < dt <= self.max_velocity_gap_s:
                 if dt == math.inf:
-                    return None  # velocity_from_positions names the interval
-                # velocity_from_positions on one frame: dt**2 is dt * dt in numpy.
-                tip, tip_cov = points_b[0], covs_b[0]
+                    return None  # the batch path names the interval
+                v, cov_v, cross = velocity_from_positions(
+                    points_b[0], covs_b[0], previous[1][0], previous[2][0], dt
+                )
                 velocity = dict(
-                    velocity_b_mm_s=(tip - previous[1][0]) / dt,
-                    velocity_cov_b=(tip_cov + previous[2][0]) / (dt * dt),
-                    velocity_tip_cov_b=tip_cov / dt,
+                    velocity_b_mm_s=v, velocity_cov_b=cov_v, velocity_tip_cov_b=cross
                 )
         self._previous = (np.array([t]), points_b[:1], covs_b[:1])
         return Observation(

@@ -17,10 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import subprocess
-import sys
 from collections import Counter
-from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -35,6 +32,7 @@ from replay.simulation.render import (
     Renderer,
     default_render_rig,
 )
+from tests.fresh import last_value
 from tests.tracker.segmentation_common import BASE_W
 from tracker.vision import kernels
 from tracker.vision.pair import _COARSE, _FINE, PairSegmentation, PairSegmenter, combine_views
@@ -490,14 +488,7 @@ inner = SimpleNamespace(frame_tip_rows=segmenter.segmenter.frame_tip_rows,
 combine_views(inner, result.views + result.views[:1], three)
 print(repr((before, versions(), result.tip_refined)))
 """
-    out = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    before, after, refined = eval(out.stdout.strip().splitlines()[-1])
+    before, after, refined = last_value(script)
     assert refined
     assert after == before
     for name, (count, nogil, cache) in before.items():  # helpers are inlined: no version

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,19 +12,10 @@ from models.imaging import OrthographicPlane, PinholeView, Rig, default_orthogra
 from models.rotations import rot_z
 from replay.simulation.render import default_render_rig
 from replay.simulation.simulator import NoiseSettings, Scene, simulate_frames, sinusoidal
+from tests.fresh import last_value
+from tests.tracker.test_reconstruction import ARRAYS
 from tracker.reconstruction import Reconstructor
 
-ARRAYS = (
-    "q",
-    "q_dot",
-    "tip_b_mm",
-    "tip_cov_b",
-    "markers_b_mm",
-    "markers_cov_b",
-    "velocity_b_mm_s",
-    "velocity_cov_b",
-    "velocity_tip_cov_b",
-)
 ORIGIN = np.zeros(3)
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -238,13 +226,6 @@ observations = [reconstructor.observe(f) for i, f in enumerate(frames[:3]) if i 
 after = (len(K.triangulate.signatures), len(K.propagate.signatures))
 print(repr((before, after, len(observations), len(batch))))
 """
-    out = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    before, after, n, batch = eval(out.stdout.strip().splitlines()[-1])
+    before, after, n, batch = last_value(script)
     assert n >= 2 and batch == 0 and before == (1, 1)
     assert after == before

@@ -4,9 +4,6 @@ compiled or loaded before the first frame."""
 
 import collections
 import itertools
-import subprocess
-import sys
-from pathlib import Path
 
 import cv2
 import numba
@@ -15,6 +12,7 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from tests.fresh import last_value
 from tests.tracker import segmentation_common
 from tests.tracker.segmentation_common import BASE_W, Q_BENT
 from tracker.vision import kernels, pixel_graph
@@ -272,14 +270,7 @@ segmenter.segment(pair.images, pair.points_px)
 segmenter.segmenter.segment(pair.images[0], renderer.backgrounds[0])
 print(repr((before, versions())))
 """
-    out = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    before, after = eval(out.stdout.strip().splitlines()[-1])
+    before, after = last_value(script)
     assert after == before
     for name, (count, nogil, cache) in before.items():  # helpers are inlined: no version
         assert nogil and cache == "FunctionCache" and count == int(name[0] != "_"), name

@@ -38,7 +38,7 @@ import math
 import numba
 import numpy as np
 
-from tracker.vision import photometry_kernels, pixel_graph, shift_kernels
+from tracker.vision import pixel_graph, shift_kernels
 
 
 # ------------------------------------------------------------------------------ contrast
@@ -599,6 +599,9 @@ def warm_up() -> None:
     # The base with a band, the tip without.
     ends(xy, w, var_w, dist, line, label, centres, covs, along, 0, -1, float(dist.max()),
          1.0, 2.0, 0.05)
+    # Here, not at the top: photometry_kernels takes _select from this module.
+    from tracker.vision import photometry_kernels
+
     photometry_kernels.warm_up()
     shift_kernels.warm_up()
     directions = np.eye(3)

@@ -29,6 +29,8 @@ import math
 import numba
 import numpy as np
 
+from tracker.vision.kernels import _select
+
 # The background's gray level, centred, as the fit's variable, and its powers x^0 ... x^4 at
 # every gray level (5, 256): numpy's powers (its own for 0 to 2, pow for 3 and 4), frozen
 # into the compiled code as a constant.
@@ -44,35 +46,6 @@ def _solve_2(a, b, d, p, q):
     if not (a > 1e-12 and det > 1e-12 * a):
         return 0.0, 0.0
     return (d * p - b * q) / det, (a * q - b * p) / det
-
-
-@numba.njit(cache=True, nogil=True)
-def _select(values, k):
-    """The k-th smallest of a float64 array (NaN-free), which it reorders (quickselect:
-    what np.partition gives at k, in half its time; as :mod:`tracker.vision.kernels` has
-    it, copied: numba's cache would not see a change to a kernel of another file)."""
-    lo = 0
-    hi = values.size - 1
-    while lo < hi:
-        pivot = values[(lo + hi) >> 1]
-        i = lo
-        j = hi
-        while i <= j:
-            while values[i] < pivot:
-                i += 1
-            while values[j] > pivot:
-                j -= 1
-            if i <= j:
-                values[i], values[j] = values[j], values[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return values[k]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -261,7 +234,10 @@ def fit(image, rows, cols, levels, usable_levels, gradient, normalise, fit_shift
         d0, d1 = _solve_2(g00, g01, g11, r0, r1)
         shift_x = -2.0 * d0 / gain
         shift_y = -2.0 * d1 / gain
-    # The black level, within a quarter of f at the mean level.
+    # The black level, within a quarter of f at the mean level. An offset of the frame does
+    # not scale with the light: contrasts are fractions of f(b) - f(0). (A gamma has no
+    # black level; f(0) of its fitted curve is the intercept of the curve's chord over the
+    # background's levels, which keeps contrasts to first order.)
     bound = 0.25 * abs(at)
     dark = min(max(lut[0], -bound), bound) if normalise else 0.0
     for b in range(1, 256):
