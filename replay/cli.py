@@ -100,6 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="let the processors sleep deeply between frames (default: kept awake while the"
         " loop runs, where permitted; docs/live.md)",
     )
+    demo.add_argument(
+        "--no-segmentation-worker",
+        action="store_true",
+        help="segment every view in the loop's process (default: the views after the first"
+        " in a worker process, at the same time, with two processors or more; docs/live.md)",
+    )
     _add_nuisance(demo)
     add_rerun_args(demo, save_default=DEMO_RRD, bind_option=True)
     demo.set_defaults(run=_command("demo"))
@@ -619,6 +625,12 @@ def _add_track(sub) -> None:
         action="store_true",
         help="let the processors sleep deeply between frames (default: kept awake through"
         " /dev/cpu_dma_latency while the loop runs, where permitted; docs/live.md)",
+    )
+    run.add_argument(
+        "--no-segmentation-worker",
+        action="store_true",
+        help="segment every view in the loop's process (default: the views after the first"
+        " in a worker process, at the same time, with two processors or more; docs/live.md)",
     )
     p.set_defaults(run=_command("track"))
 

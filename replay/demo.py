@@ -48,7 +48,7 @@ from tracker.live.sinks import LiveStatus, QueuedSink
 from tracker.types import Estimate
 from tracker.viewer.output import serve_until_interrupted
 from tracker.viewer.sink import RerunSink
-from tracker.vision.pair import PairSegmenter
+from tracker.vision.parallel import pair_segmenter
 
 Array = np.ndarray
 
@@ -83,6 +83,9 @@ class DemoSettings:
     keep_awake : bool
         The processors kept out of their deep sleep states while the loop runs
         (:class:`tracker.live.wake.WakeLatency`; where permitted).
+    segmentation_worker : bool
+        The views after the first segmented in a worker process, at the same time as the
+        first (:mod:`tracker.vision.parallel`; with two processors or more).
     """
 
     seconds: float = 15.0
@@ -98,6 +101,7 @@ class DemoSettings:
     image_noise_gray: float = RenderSettings().noise_sigma_gray
     image_nuisance: ImagingNuisance = ImagingNuisance()
     keep_awake: bool = True
+    segmentation_worker: bool = True
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -412,6 +416,10 @@ def report_lines(
     if summary.kept_awake is not None:
         awake = "yes" if summary.kept_awake else "no (frames may start cold)"
         lines.append(f"| processors kept awake between frames | {awake} |")
+    if summary.segmentation_worker is not None:
+        lines.append(
+            f"| views segmented side by side (a worker process) | {summary.segmentation_worker} |"
+        )
     if rrd_path is not None:
         size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan
         lines.append(f"| rerun recording | {rrd_path} ({size:.1f} MB) |")
@@ -465,8 +473,9 @@ def run_demo(
         seed=settings.seed,
         nuisance=settings.image_nuisance,
     )
-    segmenter = PairSegmenter(
-        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+    segmenter = pair_segmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
+        parallel=None if settings.segmentation_worker else False, report=report,
     )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
     others = {name: make_estimator(name, catheter) for name in compare}
@@ -560,4 +569,5 @@ def run_demo(
         if controller is not None:
             controller.stop()
         cameras.close()
+        segmenter.close()
     return 130 if summary.interrupted else 0

@@ -19,5 +19,6 @@ def run(args: argparse.Namespace) -> int:
         image_noise_gray=args.image_noise_gray,
         image_nuisance=nuisance_from_args(args),
         keep_awake=not args.no_keep_awake,
+        segmentation_worker=not args.no_segmentation_worker,
     )
     return run_demo(settings, args)

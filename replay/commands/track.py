@@ -23,6 +23,7 @@ from tracker.io.udp import DEFAULT_JOINT_PORT, MarkerReceiver
 from tracker.live.session import LiveSession, SessionSettings
 from tracker.live.sources import RecordingSource, UdpMarkerSource, VideoSource
 from tracker.vision.pair import PairSegmenter
+from tracker.vision.parallel import ParallelPairSegmenter, pair_segmenter
 from tracker.vision.settings import (
     SegmentationSettings,
     load_segmentation_settings,
@@ -145,7 +146,7 @@ def _scene(args: argparse.Namespace, recording: Recording | None) -> tuple[Scene
     return Scene(catheter, rig, base.R_w_b, base.o_b_w_mm), model_toml
 
 
-def _segmenter(args: argparse.Namespace, scene: Scene) -> PairSegmenter:
+def _segmenter(args: argparse.Namespace, scene: Scene) -> PairSegmenter | ParallelPairSegmenter:
     names = scene.rig.names
     if args.backgrounds is None or len(args.backgrounds) != len(names):
         raise ValueError(
@@ -158,8 +159,9 @@ def _segmenter(args: argparse.Namespace, scene: Scene) -> PairSegmenter:
         if args.segmentation
         else SegmentationSettings()
     )
-    return PairSegmenter(
-        scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, backgrounds, settings
+    return pair_segmenter(
+        scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, backgrounds, settings,
+        parallel=False if args.no_segmentation_worker else None, report=_track_report,
     )
 
 
@@ -199,6 +201,11 @@ def _open_source(
 def run(args: argparse.Namespace) -> int:
     kind = _track_source_kind(args)
     settings = _session_settings(args, kind)
+    with contextlib.ExitStack() as worker:  # the segmentation's worker process, at the end
+        return _run(args, kind, settings, worker)
+
+
+def _run(args: argparse.Namespace, kind: str, settings, worker: contextlib.ExitStack) -> int:
     with contextlib.ExitStack() as stack:  # closes what was opened if the set-up fails
         recording = None
         if kind == "recording":
@@ -208,6 +215,8 @@ def run(args: argparse.Namespace) -> int:
                 _track_report(f"{args.recording}: warning: {warning}")
         scene, model_toml = _scene(args, recording)
         segmenter = _segmenter(args, scene) if kind in ("video", "camera") else None
+        if segmenter is not None:
+            worker.callback(segmenter.close)
         session = LiveSession(
             settings,
             scene,

@@ -39,6 +39,7 @@ from tracker.viewer.layout import default_blueprint
 from tracker.viewer.output import RerunOutput, open_rerun_output
 from tracker.viewer.sink import LiveViewerSink, RerunSink
 from tracker.vision.pair import PairSegmenter
+from tracker.vision.parallel import ParallelPairSegmenter
 
 
 def _report_stderr(message: str) -> None:
@@ -156,8 +157,9 @@ class LiveSession:
         The catheter model, the rig and the registered base pose.
     rerun_args : argparse.Namespace, optional
         The flags of :func:`tracker.viewer.output.add_rerun_args` (None: no rerun output).
-    segmenter : PairSegmenter, optional
-        For sources that yield images; its backgrounds go into the recording.
+    segmenter : PairSegmenter or ParallelPairSegmenter, optional
+        For sources that yield images; its backgrounds go into the recording. The caller
+        closes it (a ParallelPairSegmenter's worker process) once the session is over.
     model_toml : str, optional
         The catheter model file's text, stored in the recording (needed with ``record_path``).
     record_metadata : mapping, optional
@@ -192,7 +194,7 @@ class LiveSession:
         scene,
         *,
         rerun_args=None,
-        segmenter: PairSegmenter | None = None,
+        segmenter: PairSegmenter | ParallelPairSegmenter | None = None,
         model_toml: str | None = None,
         record_metadata: Mapping[str, Any] | None = None,
         viewer_methods: Sequence[str] = (),
@@ -203,6 +205,7 @@ class LiveSession:
             raise ValueError("recording a session needs the catheter model's text")
         self.settings = settings
         self.scene = scene
+        self.segmenter = segmenter
         self.report = report
         catheter, rig = scene.catheter, scene.rig
         R_w_b, o_b_w_mm = scene.R_w_b, scene.o_b_w_mm
@@ -347,13 +350,17 @@ class LiveSession:
         a Ctrl-C from then on ends the run with its summary, whenever it comes.
         """
         try:
-            return self.tracker.run(
+            summary = self.tracker.run(
                 source, idle_timeout_s=idle_timeout_s, max_frames=max_frames, on_start=announce
             )
         except KeyboardInterrupt:  # Ctrl-C before the loop took it over: close all the same
             self.tracker.close(source)
-            self.tracker.summary.stop_reason = "interrupted"
-            return self.tracker.summary
+            summary = self.tracker.summary
+            summary.stop_reason = "interrupted"
+        if isinstance(self.segmenter, ParallelPairSegmenter):
+            failure = self.segmenter.worker_failure
+            summary.segmentation_worker = "yes" if failure is None else f"no ({failure})"
+        return summary
 
     def close(self) -> None:
         """Close everything the session opened (nothing happens twice)."""

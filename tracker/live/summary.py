@@ -83,6 +83,9 @@ class LiveSummary:
     # Whether the processors were kept out of their deep sleep states during the run
     # (tracker.live.wake; None: not asked).
     kept_awake: bool | None = None
+    # Whether the views after the first were segmented in a worker process, at the same time
+    # ("yes", or "no (why)"; tracker.vision.parallel); None: no images segmented in parallel.
+    segmentation_worker: str | None = None
     duration_s: float = 0.0
     stop_reason: str = ""
 
@@ -165,6 +168,8 @@ class LiveSummary:
                 "  processors kept awake between frames: "
                 + ("yes" if self.kept_awake else "no (frames may start cold)")
             )
+        if self.segmentation_worker is not None:
+            out.append(f"  views segmented side by side: {self.segmentation_worker}")
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
             if dropped or stalls:

@@ -366,6 +366,10 @@ class PairSegmenter:
         for camera in self.cameras:
             camera.settle()
 
+    def close(self) -> None:
+        """Nothing to release (as :class:`tracker.vision.parallel.ParallelPairSegmenter`'s
+        ``close``, which stops its worker process)."""
+
     def rehearse(
         self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
     ) -> None:

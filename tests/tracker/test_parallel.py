@@ -1,0 +1,235 @@
+"""The views segmented side by side (tracker.vision.parallel): the same results as one
+process, bit for bit, and a worker that fails never stops the caller."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from multiprocessing import shared_memory
+
+import numpy as np
+import pytest
+
+from models.catheter import default_catheter
+from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
+from replay.simulation.simulator import default_scene
+from tracker.vision import parallel
+from tracker.vision.pair import PairSegmenter
+from tracker.vision.parallel import MAX_POINTS, ParallelPairSegmenter, pair_segmenter
+
+N_PAIRS = 14
+
+
+@pytest.fixture(scope="module")
+def setup():
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    renderer = Renderer(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=3,
+        nuisance=ImagingNuisance(gain_flicker=0.1, vibration_px=0.3),
+    )  # fmt: skip
+    rng = np.random.default_rng(3)
+    qs = np.column_stack(
+        [np.linspace(0, 1, N_PAIRS), np.linspace(0.8, -0.6, N_PAIRS), np.full(N_PAIRS, 0.7)]
+    )
+    pairs = [renderer.render(q, 0.4, rng).images for q in qs]
+    return catheter, scene, renderer, pairs
+
+
+def make(setup, kind, **kwargs):
+    catheter, scene, renderer, _ = setup
+    return kind(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds, **kwargs
+    )
+
+
+def regions(setup, k):
+    """What the loop passes: none, the last frame's centreline, or many points."""
+    _, scene, _, pairs = setup
+    if k % 3 == 0:
+        return None
+    if k % 3 == 1:
+        return (None, np.array([[300.0, 200.0], [340.0, 260.0]]))
+    # More points than go through the shared memory as they are: their box does.
+    rng = np.random.default_rng(k)
+    many = rng.uniform([250, 150], [400, 330], size=(MAX_POINTS + 40, 2))
+    many[5] = np.nan
+    return (many, many + 3.0)
+
+
+def fields(view) -> list:
+    """Every field of a ViewSegmentation (the photometry's expanded), for comparison."""
+    out = []
+    for f in dataclasses.fields(view):
+        value = getattr(view, f.name)
+        if f.name == "photometry" and value is not None:
+            out += [getattr(value, g.name) for g in dataclasses.fields(value)]
+        else:
+            out.append(value)
+    return out
+
+
+def assert_same(a, b):
+    assert type(a) is type(b)
+    if isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    elif isinstance(a, float):
+        assert a == b or (np.isnan(a) and np.isnan(b))
+    else:
+        assert a == b
+
+
+def run_frames(segmenter, setup, rehearse=True):
+    """Segment the pairs as the live loop does; each result's comparable parts."""
+    pairs = setup[3]
+    out = []
+    for k, images in enumerate(pairs):
+        if rehearse and k:
+            segmenter.rehearse(pairs[k - 1], regions(setup, k))
+        if k == 8:
+            segmenter.reset()
+        seg = segmenter.segment(images, regions(setup, k), settle=k % 2 == 0)
+        segmenter.settle()
+        out.append(seg)
+    return out
+
+
+def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
+    """Every field of every view, the rows and the epipolar rejections, over frames that
+    flicker and vibrate, rehearsed, settled now or later, with a reset midway and regions
+    of every kind; and the background models end the same."""
+    reference = make(setup, PairSegmenter)
+    with make(setup, ParallelPairSegmenter) as worked:
+        assert worked.parallel
+        expected, got = run_frames(reference, setup), run_frames(worked, setup)
+        assert worked.parallel, worked.worker_failure  # the worker did them all
+        for a, b in zip(expected, got, strict=True):
+            for x, y in zip((*a.uv, *a.cov, a.rejected), (*b.uv, *b.cov, b.rejected), strict=True):
+                assert_same(x, y)
+            assert a.tip_refined == b.tip_refined
+            for va, vb in zip(a.views, b.views, strict=True):
+                for x, y in zip(fields(va), fields(vb), strict=True):
+                    assert_same(x, y)
+        backgrounds = worked.backgrounds
+    assert np.isfinite(np.concatenate([np.ravel(s.uv) for s in expected])).mean() > 0.9
+    assert not np.array_equal(reference.backgrounds[1], setup[2].backgrounds[1])  # updated
+    for a, b in zip(reference.backgrounds, backgrounds, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_worker_that_dies_is_reported_once_and_its_views_are_segmented_here(setup):
+    pairs = setup[3]
+    lines = []
+    with make(setup, ParallelPairSegmenter, report=lines.append) as segmenter:
+        segmenter.segment(pairs[0])
+        os.kill(segmenter._process.pid, signal.SIGKILL)
+        segmenter._process.join(5.0)
+        results = [segmenter.segment(images) for images in pairs[1:5]]
+        assert not segmenter.parallel
+    assert len(lines) == 1
+    assert "worker stopped" in lines[0] and "exit code -9" in lines[0]
+    assert "side segmented in this process from now on" in lines[0]
+    for seg in results:  # every frame answered, the dead worker's view included
+        assert np.isfinite(seg.views[1].tip_px).all()
+        assert np.isfinite(seg.uv[1][0]).all()
+
+
+class _NoProcesses:
+    """A multiprocessing context that cannot start a process."""
+
+    def Pipe(self, duplex=True):  # noqa: N802 (multiprocessing's name)
+        import multiprocessing
+
+        return multiprocessing.Pipe(duplex)
+
+    def Process(self, **kwargs):  # noqa: N802
+        class Failing:
+            pid = None
+
+            def start(self):
+                raise OSError("no more processes")
+
+            def is_alive(self):
+                return False
+
+        return Failing()
+
+
+def test_a_worker_that_cannot_start_leaves_every_view_here_with_the_same_results(
+    setup, monkeypatch
+):
+    monkeypatch.setattr(parallel.multiprocessing, "get_context", lambda _: _NoProcesses())
+    lines = []
+    with make(setup, ParallelPairSegmenter, report=lines.append) as segmenter:
+        assert not segmenter.parallel
+        got = run_frames(segmenter, setup)
+    assert len(lines) == 1 and "did not start (no more processes)" in lines[0]
+    expected = run_frames(make(setup, PairSegmenter), setup)
+    for a, b in zip(expected, got, strict=True):
+        for x, y in zip((*a.uv, *a.cov), (*b.uv, *b.cov), strict=True):
+            assert_same(x, y)
+
+
+def test_bad_input_raises_as_in_one_process_and_the_worker_stays_in_step(setup):
+    pairs = setup[3]
+    reference = make(setup, PairSegmenter)
+    with make(setup, ParallelPairSegmenter) as segmenter:
+        for bad in ((pairs[0][0],), (pairs[0][0], pairs[0][1][:-1]), (pairs[0][0][:, 1:], pairs[0][1])):
+            with pytest.raises(ValueError) as expected:
+                reference.segment(bad)
+            with pytest.raises(ValueError) as got:
+                segmenter.segment(bad)
+            assert str(got.value) == str(expected.value)
+        # The first view failed in this process while the worker segmented the second: its
+        # answer was taken then, and the next frame gets its own.
+        seg = segmenter.segment(pairs[1])
+        assert segmenter.parallel
+        assert np.isfinite(seg.views[1].tip_px).all()
+
+
+def test_an_error_that_does_not_pickle_reaches_the_caller_as_its_text():
+    class Unpicklable(ValueError):
+        def __reduce__(self):
+            raise TypeError("no")
+
+    memory = shared_memory.SharedMemory(create=True, size=parallel._Shared.size([(4, 4)]))
+    try:
+        shared = parallel._Shared(memory, [(4, 4)])
+        parallel._answer_with(shared, 7, ("error", Unpicklable("bad frame")))
+        assert shared.control[parallel._ANSWER] == 7
+        n = int(shared.control[parallel._ANSWER_BYTES])
+        kind, error = parallel.pickle.loads(shared.answer[:n])
+        assert kind == "error" and isinstance(error, RuntimeError)
+        assert str(error) == "Unpicklable: bad frame"
+        shared.release()
+    finally:
+        memory.close()
+        memory.unlink()
+
+
+def test_close_stops_the_worker_frees_the_memory_and_later_frames_are_done_here(setup):
+    pairs = setup[3]
+    segmenter = make(setup, ParallelPairSegmenter)
+    process, name = segmenter._process, segmenter._memory.name
+    segmenter.segment(pairs[0])
+    segmenter.close()
+    segmenter.close()  # nothing happens twice
+    assert not process.is_alive() and process.exitcode == 0  # stopped, not killed
+    with pytest.raises(FileNotFoundError):
+        shared_memory.SharedMemory(name)
+    assert segmenter.worker_failure == "closed"
+    seg = segmenter.segment(pairs[1])
+    assert np.isfinite(seg.views[1].tip_px).all()
+
+
+def test_the_loop_gets_a_worker_only_with_two_processors(setup, monkeypatch):
+    one = make(setup, pair_segmenter, parallel=False)
+    assert type(one) is PairSegmenter
+    one.close()  # nothing to release, but there
+    monkeypatch.setattr(parallel, "parallel_possible", lambda: False)
+    assert type(make(setup, pair_segmenter)) is PairSegmenter
+    monkeypatch.setattr(parallel, "parallel_possible", lambda: True)
+    with make(setup, pair_segmenter) as two:
+        assert type(two) is ParallelPairSegmenter and two.parallel

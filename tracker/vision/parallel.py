@@ -1,0 +1,556 @@
+"""The views of a frame segmented side by side, on two processors (docs/live.md).
+
+A pair's two views are independent until :func:`tracker.vision.pair.combine_views` puts
+them together, and each view's state over time (its background model, its region of
+interest) belongs to its camera alone (:class:`tracker.vision.background.CameraSegmenter`).
+:class:`ParallelPairSegmenter` therefore segments the first view in the calling process and
+the others in a worker process of their own, at the same time, and combines them where the
+caller is: on the 2-core development machine a pair then costs about the time of one view
+(1.3 ms against 2.4 ms, rehearsed 3 ms before as the live loop does, measured in
+``benchmarks/bench_latency.py``). Python threads would not do: the views' Python would take
+turns on the interpreter lock.
+
+Requests, images (two slots per view, used in turn) and answers go through shared memory,
+with a sequence number each side polls while an answer or a frame is due within
+milliseconds, and a pipe to wake the worker otherwise: a request costs the caller a few
+microseconds. The results are those of :class:`PairSegmenter` on the same
+frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails to start, dies
+or stops answering is reported once and its views are segmented in the calling process from
+then on (from the backgrounds given, which the background models then follow again): the
+caller never stops for it.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import sys
+import time
+import weakref
+from collections.abc import Callable, Sequence
+from multiprocessing import shared_memory
+
+import numpy as np
+
+from models.catheter import Catheter
+from models.imaging import Rig
+from tracker.types import Frame
+from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
+from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
+
+Array = np.ndarray
+
+START_TIMEOUT_S = 120.0  # a worker's start: imports and kernels loaded (compiled, the first time)
+ANSWER_TIMEOUT_S = 10.0  # a worker that takes longer over one request is taken for hung
+SPIN_S = 0.02  # how long the caller polls for an answer before it sleeps between looks, s
+REHEARSAL_SPIN_S = 0.02  # how long the worker polls for the frame after a rehearsal, s
+MAX_POINTS = 64  # predicted points per view passed as they are (more: their bounding box)
+_SLOTS = 2  # image slots per view: a request never writes the slot of the one before
+# The control words in the shared memory (int64), then each worker view's point count.
+_REQUEST, _KIND, _SLOT, _ANSWER, _ANSWER_BYTES = range(5)
+_COUNTS = 8
+_SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP = range(1, 6)
+
+
+def _report_stderr(message: str) -> None:
+    print(f"segmentation: {message}", file=sys.stderr, flush=True)
+
+
+def parallel_possible() -> bool:
+    """Whether this process may use two processors or more (a worker then has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) >= 2
+    except AttributeError:  # not Linux
+        return (os.cpu_count() or 1) >= 2
+
+
+class WorkerStopped(RuntimeError):
+    """The segmentation worker did not answer (it died, hung or could not start)."""
+
+
+class _Shared:
+    """The shared memory's parts: control words, predicted points, image slots, answer."""
+
+    def __init__(self, memory: shared_memory.SharedMemory, shapes) -> None:
+        n = len(shapes)
+        buf = memory.buf
+        self.control = np.ndarray(_COUNTS + n, np.int64, buf, 0)
+        offset = self.control.nbytes
+        self.points = np.ndarray((n, MAX_POINTS, 2), np.float64, buf, offset)
+        offset += self.points.nbytes
+        self.slots = []
+        for h, w in shapes:
+            self.slots.append(
+                [np.ndarray((h, w), np.uint8, buf, offset + s * h * w) for s in range(_SLOTS)]
+            )
+            offset += _SLOTS * h * w
+        self.answer = np.ndarray(len(buf) - offset, np.uint8, buf, offset)
+
+    @staticmethod
+    def size(shapes) -> int:
+        images = sum(h * w for h, w in shapes)
+        n = len(shapes)
+        return 8 * (_COUNTS + n) + 16 * MAX_POINTS * n + _SLOTS * images + images + (1 << 20)
+
+    def release(self) -> None:
+        """Drop the arrays (the memory closes only once none is left)."""
+        self.control = self.points = self.answer = None
+        self.slots = []
+
+
+class ParallelPairSegmenter:
+    """:class:`tracker.vision.pair.PairSegmenter`'s work, the views after the first in a
+    worker process.
+
+    Same parameters, methods and results as :class:`PairSegmenter` (``segment``,
+    ``settle``, ``rehearse``, ``reset``, ``frame``, ``backgrounds``, ``base_px``), plus
+    :meth:`close` (also a context manager). Making it starts the worker and waits until it
+    has loaded the segmentation's kernels (a second or two).
+
+    Parameters
+    ----------
+    catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings
+        As for :class:`PairSegmenter`.
+    report : callable, optional
+        Receives one line when the worker fails and its views move to this process
+        (default: standard error).
+
+    Attributes
+    ----------
+    worker_failure : str or None
+        Why the worker's views are segmented in this process, if they are.
+    """
+
+    def __init__(
+        self,
+        catheter: Catheter,
+        rig: Rig,
+        R_w_b: Array,
+        o_b_w_mm: Array,
+        backgrounds: Sequence[Array],
+        settings: SegmentationSettings = DEFAULT_SETTINGS,
+        *,
+        report: Callable[[str], None] = _report_stderr,
+    ) -> None:
+        # Here first: the kernels are compiled and cached (a fresh machine) before the
+        # worker loads them. Its cameras after the first are the fallback.
+        self.local = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+        self.rig = rig
+        self.segmenter = self.local.segmenter
+        self.report = report
+        self.worker_failure: str | None = None
+        self._remote = tuple(range(1, rig.n_views))  # the worker's views
+        self._shapes = tuple(self.local.cameras[v].background.image.shape for v in self._remote)
+        self._slot = 0  # the slot of the images last written
+        self._written: tuple = ()  # the image arrays last written there
+        self._seq = 0  # of the last request
+        self._process = self._bell = self._memory = self._shared = None
+        if not self._remote:
+            self.worker_failure = "one view only"
+        else:
+            try:
+                self._start(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+            except Exception as exc:  # noqa: BLE001 (any failure: the views are done here)
+                self._fail(f"the segmentation worker did not start ({exc})")
+        self._finalizer = weakref.finalize(
+            self, _shut, self._process, self._bell, self._shared, self._memory
+        )
+
+    # ---------------------------------------------------------------- worker's life
+    def _start(self, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings) -> None:
+        self._memory = shared_memory.SharedMemory(create=True, size=_Shared.size(self._shapes))
+        self._shared = _Shared(self._memory, self._shapes)
+        self._shared.control[:] = -1
+        context = multiprocessing.get_context("spawn")  # no fork of a process with threads
+        wake, self._bell = context.Pipe(duplex=False)
+        self._process = context.Process(
+            target=_serve,
+            args=(
+                wake,
+                self._memory.name,
+                self._shapes,
+                self._remote,
+                catheter,
+                rig,
+                np.asarray(R_w_b, float),
+                np.asarray(o_b_w_mm, float),
+                tuple(np.asarray(b) for b in backgrounds),
+                settings,
+            ),
+            name="cathtrack-segmentation",
+            daemon=True,
+        )
+        self._process.start()
+        wake.close()  # the worker's end
+        self._answer(START_TIMEOUT_S)  # its first answer: ready
+
+    def _fail(self, reason: str) -> None:
+        """Move the worker's views here for good, and say so once."""
+        if self.worker_failure is not None:
+            return
+        self.worker_failure = reason
+        self.report(
+            f"{reason}; view{'s' if len(self._remote) > 1 else ''}"
+            f" {', '.join(self.rig.names[v] for v in self._remote)}"
+            " segmented in this process from now on"
+        )
+        _shut(self._process, self._bell, None, None)
+        self._process = self._bell = None
+
+    @property
+    def parallel(self) -> bool:
+        """Whether the worker segments its views (False once it has failed or closed)."""
+        return self.worker_failure is None
+
+    def close(self) -> None:
+        """Stop the worker and free the shared memory; any later frame is segmented in
+        this process."""
+        if self.worker_failure is None:
+            self.worker_failure = "closed"
+        self._finalizer()
+        self._process = self._bell = self._shared = self._memory = None
+
+    def __enter__(self) -> ParallelPairSegmenter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _request(self, kind: int, slot: int = 0, predicted=None) -> bool:
+        """Post a request and wake the worker; False (its views then moved here) when it
+        has gone."""
+        shared = self._shared
+        control = shared.control
+        if predicted is not None:
+            for k, v in enumerate(self._remote):
+                control[_COUNTS + k] = _put_points(predicted[v], shared.points[k])
+        control[_KIND] = kind
+        control[_SLOT] = slot
+        self._seq += 1
+        control[_REQUEST] = self._seq  # last: the worker reads the rest once it sees it
+        try:
+            self._bell.send_bytes(b"")
+        except (OSError, ValueError) as exc:
+            self._process.join(1.0)
+            code = self._process.exitcode
+            ended = exc if code is None else f"it ended with exit code {code}"
+            self._fail(f"the segmentation worker stopped ({ended})")
+            return False
+        return True
+
+    def _answer(self, timeout_s: float = ANSWER_TIMEOUT_S):
+        """The worker's answer to the last request (its value; its error raised again)."""
+        control = self._shared.control
+        seq = self._seq
+        if control[_ANSWER] != seq:
+            # Polled at first: the answer is usually due within a millisecond, and waking
+            # from a blocking wait would cost more than that wait.
+            started = time.monotonic()
+            spin_until = started + SPIN_S
+            while control[_ANSWER] != seq:
+                now = time.monotonic()
+                if now < spin_until:
+                    continue
+                code = self._process.exitcode
+                if code is not None:
+                    raise WorkerStopped(f"it ended with exit code {code}")
+                if now > started + timeout_s:
+                    raise WorkerStopped(f"no answer within {timeout_s:g} s")
+                time.sleep(0.0002)
+        n = int(control[_ANSWER_BYTES])
+        kind, value = pickle.loads(self._shared.answer[:n])
+        if kind == "error":
+            raise value
+        return value
+
+    def _write(self, images: Sequence[Array], reuse: bool) -> int:
+        """The slot holding the worker's views of ``images`` (written now unless ``reuse``
+        and they are the arrays written last)."""
+        remote = tuple(images[v] for v in self._remote)
+        if (
+            reuse
+            and len(remote) == len(self._written)
+            and all(a is b for a, b in zip(remote, self._written, strict=True))
+        ):
+            return self._slot
+        slot = (self._slot + 1) % _SLOTS
+        for k, image in enumerate(remote):
+            np.copyto(self._shared.slots[k][slot], image)
+        self._slot, self._written = slot, remote
+        return slot
+
+    def _checked(self, images: Sequence[Array], predicted_px) -> tuple[list[Array], Sequence]:
+        if len(images) != self.rig.n_views:
+            raise ValueError(
+                f"need one image per view ({', '.join(self.rig.names)}), got {len(images)}"
+            )
+        images = list(images)
+        for k, v in enumerate(self._remote):
+            images[v] = check_image(images[v], f"{self.rig.names[v]} image", self._shapes[k])
+        if predicted_px is None:
+            predicted_px = (None,) * len(images)
+        return images, predicted_px
+
+    # ---------------------------------------------------------------- segmentation
+    def segment(
+        self,
+        images: Sequence[Array],
+        predicted_px: Sequence[Array | None] | None = None,
+        *,
+        settle: bool = True,
+    ) -> PairSegmentation:
+        """Segment one synchronised frame (:meth:`PairSegmenter.segment`)."""
+        if not self.parallel:
+            return self.local.segment(images, predicted_px, settle=settle)
+        images, predicted_px = self._checked(images, predicted_px)
+        sent = self._request(_SEGMENT, self._write(images, False), predicted_px)
+        camera = self.local.cameras[0]
+        # The worker's answer is taken whatever happens here, so that the next request
+        # gets its own.
+        try:
+            first = camera.in_camera_frame(
+                camera.segment(images[0], predicted_px[0], settle=settle)
+            )
+        finally:
+            others = self._others(sent, images, predicted_px, settle)
+        return combine_views(self.segmenter, (first, *others), self.rig)
+
+    def _others(self, sent: bool, images, predicted_px, settle: bool) -> tuple:
+        if sent:
+            try:
+                return self._answer()
+            except WorkerStopped as exc:
+                self._fail(f"the segmentation worker stopped ({exc})")
+        cameras = self.local.cameras  # the fallback
+        return tuple(
+            cameras[v].in_camera_frame(
+                cameras[v].segment(images[v], predicted_px[v], settle=settle)
+            )
+            for v in self._remote
+        )
+
+    def settle(self) -> None:
+        """Average the frame segmented with ``settle=False`` into the background models
+        (the worker settles its own as soon as it has answered, on its processor)."""
+        self.local.settle()
+
+    def rehearse(
+        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
+    ) -> None:
+        """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time,
+        then polls for the frame instead of sleeping (up to :data:`REHEARSAL_SPIN_S`)."""
+        if not self.parallel:
+            self.local.rehearse(images, predicted_px)
+            return
+        images, predicted_px = self._checked(images, predicted_px)
+        self._request(_REHEARSE, self._write(images, True), predicted_px)
+        self.local.cameras[0].rehearse(images[0], predicted_px[0])
+
+    def reset(self) -> None:
+        """Search the next frame's images whole (the backgrounds are kept)."""
+        self.local.reset()
+        if self.parallel:
+            self._request(_RESET)
+
+    @property
+    def backgrounds(self) -> tuple[Array, ...]:
+        """Each camera's current background model (uint8), the last frame averaged in."""
+        local = self.local.backgrounds
+        if not self.parallel or not self._request(_BACKGROUNDS):
+            return local
+        try:
+            others = self._answer()
+        except WorkerStopped as exc:
+            self._fail(f"the segmentation worker stopped ({exc})")
+            return local
+        return (local[0], *others)
+
+    @property
+    def base_px(self) -> tuple[Array, ...]:
+        """The registered base projected into each camera, px."""
+        return self.local.base_px
+
+    def frame(
+        self,
+        time_s: float,
+        q: Array,
+        images: Sequence[Array],
+        q_dot: Array | None = None,
+        delta_L_true_rad: float | None = None,
+    ) -> Frame:
+        """Segment a frame's images and return the pipeline Frame (images attached)."""
+        return self.segment(images).frame(time_s, q, q_dot, images, delta_L_true_rad)
+
+
+def pair_segmenter(
+    catheter: Catheter,
+    rig: Rig,
+    R_w_b: Array,
+    o_b_w_mm: Array,
+    backgrounds: Sequence[Array],
+    settings: SegmentationSettings = DEFAULT_SETTINGS,
+    *,
+    parallel: bool | None = None,
+    report: Callable[[str], None] = _report_stderr,
+) -> PairSegmenter | ParallelPairSegmenter:
+    """The live loop's segmenter: :class:`ParallelPairSegmenter` where this process may use
+    two processors or more (``parallel=None``) or when asked, else :class:`PairSegmenter`."""
+    if parallel is None:
+        parallel = parallel_possible() and rig.n_views >= 2
+    if parallel:
+        return ParallelPairSegmenter(
+            catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings, report=report
+        )
+    return PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+
+
+# ------------------------------------------------------------------------- helpers
+def _put_points(points: Array | None, out: Array) -> int:
+    """Write predicted points into ``out`` (MAX_POINTS, 2); their count, -1 for None.
+
+    More than ``MAX_POINTS`` go as the corners of their finite points' bounding box: the
+    segmentation searches the box around them (:func:`tracker.vision.detection.search_box`)
+    and nothing else of them.
+    """
+    if points is None:
+        return -1
+    points = np.asarray(points, float).reshape(-1, 2)
+    if points.shape[0] > MAX_POINTS:
+        finite = points[np.isfinite(points).all(axis=1)]
+        points = (
+            np.stack([finite.min(axis=0), finite.max(axis=0)])
+            if finite.size
+            else np.full((1, 2), np.nan)
+        )
+    n = points.shape[0]
+    out[:n] = points
+    return n
+
+
+def _taken_points(shared: _Shared, k: int) -> Array | None:
+    n = int(shared.control[_COUNTS + k])
+    return None if n < 0 else shared.points[k, :n].copy()
+
+
+def _shut(process, bell, shared, memory) -> None:
+    """Stop a worker and free its shared memory (each part that is there)."""
+    if bell is not None:
+        if shared is not None and process is not None and process.is_alive():
+            shared.control[_KIND] = _STOP
+            shared.control[_REQUEST] += 1
+        try:
+            bell.send_bytes(b"")  # or the end of the pipe: either stops it
+        except (OSError, ValueError):
+            pass
+        bell.close()
+    if process is not None and process.pid is not None:
+        process.join(2.0)
+        if process.is_alive():
+            process.terminate()
+            process.join(2.0)
+    if shared is not None:
+        shared.release()
+    if memory is not None:
+        memory.close()
+        memory.unlink()
+
+
+# --------------------------------------------------------------------------- worker
+def _serve(
+    wake, memory_name, shapes, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings
+) -> None:
+    """The worker process: segment its views on request until told to stop, or until the
+    caller's end of the pipe closes. Answers ``(kind, value)``: ``("ok", ...)`` or
+    ``("error", exception)``."""
+    import cv2
+
+    # Ctrl-C reaches the whole process group: the caller stops the worker, not the signal.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    cv2.setNumThreads(1)  # as in the loop's process: one processor each
+    memory = shared_memory.SharedMemory(memory_name)
+    shared = _Shared(memory, shapes)
+    try:
+        _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+    except (EOFError, OSError):
+        pass  # the caller has gone
+    finally:
+        shared.release()
+        memory.close()
+
+
+def _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings):
+    control = shared.control
+    try:
+        pair = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+    except Exception as exc:  # noqa: BLE001 (told to the caller, which goes on without)
+        _answer_with(shared, 0, ("error", WorkerStopped(f"{type(exc).__name__}: {exc}")))
+        return
+    cameras = [pair.cameras[v] for v in remote]
+    seen = int(control[_REQUEST])  # none is sent before this answer: ready
+    _answer_with(shared, 0, ("ok", None))
+    spin_until = 0.0
+    while True:
+        while control[_REQUEST] == seen:
+            # After a rehearsal the frame is due within milliseconds: poll for it.
+            if time.monotonic() < spin_until:
+                continue
+            if wake.poll(1.0):
+                while wake.poll(0):
+                    wake.recv_bytes()  # EOFError once the caller has closed its end
+        seen = int(control[_REQUEST])
+        kind, slot = int(control[_KIND]), int(control[_SLOT])
+        spin_until = 0.0
+        if kind == _SEGMENT:
+            try:
+                views = tuple(
+                    camera.in_camera_frame(
+                        camera.segment(
+                            shared.slots[k][slot], _taken_points(shared, k), settle=False
+                        )
+                    )
+                    for k, camera in enumerate(cameras)
+                )
+                answer = ("ok", views)
+            except Exception as exc:  # noqa: BLE001 (raised again in the caller)
+                answer = ("error", exc)
+            _answer_with(shared, seen, answer)
+            for camera in cameras:  # the caller's settle, off its critical path
+                camera.settle()
+        elif kind == _REHEARSE:
+            try:
+                for k, camera in enumerate(cameras):
+                    camera.rehearse(shared.slots[k][slot], _taken_points(shared, k))
+            except Exception:  # noqa: BLE001, S110 (a rehearsal changes nothing; the
+                pass  # frame's segmentation reports what is wrong)
+            spin_until = time.monotonic() + REHEARSAL_SPIN_S
+        elif kind == _RESET:
+            for camera in cameras:
+                camera.reset()
+        elif kind == _BACKGROUNDS:
+            for camera in cameras:
+                camera.settle()
+            _answer_with(shared, seen, ("ok", tuple(c.background.image for c in cameras)))
+        elif kind == _STOP:
+            return
+
+
+def _answer_with(shared: _Shared, seq: int, answer: tuple) -> None:
+    """Write an answer for the caller (pickled); an error that does not pickle goes as a
+    RuntimeError of its text, an answer too large as an error."""
+    try:
+        data = pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception:  # noqa: BLE001
+        error = answer[1]
+        data = pickle.dumps(("error", RuntimeError(f"{type(error).__name__}: {error}")))
+    if len(data) > shared.answer.size:
+        data = pickle.dumps(
+            (
+                "error",
+                RuntimeError(f"the segmentation worker's answer is too large ({len(data)} bytes)"),
+            )
+        )
+    shared.answer[: len(data)] = np.frombuffer(data, np.uint8)
+    shared.control[_ANSWER_BYTES] = len(data)
+    shared.control[_ANSWER] = seq  # last: the caller reads the answer once it sees it
