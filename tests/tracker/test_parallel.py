@@ -233,3 +233,27 @@ def test_the_loop_gets_a_worker_only_with_two_processors(setup, monkeypatch):
     monkeypatch.setattr(parallel, "parallel_possible", lambda: True)
     with make(setup, pair_segmenter) as two:
         assert type(two) is ParallelPairSegmenter and two.parallel
+
+
+@pytest.mark.parametrize("n", [0, 3, MAX_POINTS, MAX_POINTS + 1, 500])
+def test_predicted_points_reach_the_worker_with_the_search_box_they_make(n):
+    """As they are up to MAX_POINTS; beyond, as the corners of their finite points' box,
+    which is all the segmentation takes from them (the extremes here are the last points,
+    and some points are not finite)."""
+    from tracker.vision.detection import search_box
+
+    rng = np.random.default_rng(n)
+    points = rng.uniform([200, 100], [300, 200], size=(n, 2))
+    if n:
+        points[-1] = (20.0, 450.0)
+        points[0, 1] = np.inf
+    out = np.zeros((MAX_POINTS, 2))
+    count = parallel._put_points(points, out)
+    taken = out[:count]
+    if n <= MAX_POINTS:
+        np.testing.assert_array_equal(taken, points)
+    assert search_box(taken, 40.0, (480, 640)) == search_box(points, 40.0, (480, 640))
+    assert parallel._put_points(None, out) == -1
+    nan = np.full((MAX_POINTS + 5, 2), np.nan)
+    count = parallel._put_points(nan, out)
+    assert search_box(out[:count], 40.0, (480, 640)) == (0, 0, 640, 480)
