@@ -8,8 +8,10 @@ CPU hog on every core):
 
 1. ``segmentation``: one pair segmented by :class:`tracker.vision.pair.PairSegmenter`, the
    whole image searched every time, or only the region of interest around the catheter
-   predicted from the last estimate at the frame's joints (what the loop does); the set-ups
-   take turns frame by frame, so that a change of the machine's load hits both alike;
+   predicted from the last estimate at the frame's joints (what the loop does), and that
+   region with the views side by side (:class:`tracker.vision.parallel.ParallelPairSegmenter`,
+   the second view in a worker process); the set-ups take turns frame by frame, so that a
+   change of the machine's load hits them alike;
 2. ``loop``: :class:`tracker.live.loop.LiveTracker` fed by hand as fast as it goes, joint
    datagrams at 1 kHz over loopback UDP (drained by the loop) and the estimate datagram sent
    back: latency from the moment the pair is handed over to the estimate being ready, with
@@ -21,7 +23,8 @@ CPU hog on every core):
    ``cathtrack track`` with simulated cameras rendered ahead in a process and a simulated
    controller in another, rerun writing an ``.rrd``, the comparison estimator): latency from
    the exposure to the estimate sent, frames dropped (a newer pair came while the loop was
-   busy), estimates per second, the UKF's RMS error.
+   busy), estimates per second, the UKF's RMS error; with the views side by side (the
+   demo's default with two processors) and in the loop's process alone.
 
 Targets (issue 12): quiet, image -> estimate p99 <= 5 ms (``loop``, segmentation) and no pair
 rendered late; under load, ``live`` p99 <= two frame periods with the drops counted and the UKF
@@ -59,6 +62,7 @@ from tracker.live.sources import ImageSet  # noqa: E402
 from tracker.reconstruction import Reconstructor  # noqa: E402
 from tracker.viewer.output import add_rerun_args  # noqa: E402
 from tracker.vision.pair import PairSegmenter  # noqa: E402
+from tracker.vision.parallel import ParallelPairSegmenter  # noqa: E402
 
 # The loop's work, stretched by --slower: every stage of a frame and the priming's parts
 # between frames (the glue between them, some 0.1 ms a frame, is not). The priming's parts
@@ -75,7 +79,12 @@ LOOP_WORK = (
     (LiveTracker, "_predict_region"),
     (PairSegmenter, "rehearse"),
     (PairSegmenter, "settle"),
+    (ParallelPairSegmenter, "rehearse"),
+    (ParallelPairSegmenter, "settle"),
 )
+# With the views side by side, the loop's segmentation stage is its own view and its wait
+# for the worker's (polled: processor time), so stretching the stage stretches both, as a
+# machine twice as slow would.
 TARGET_P99_MS = 5.0
 FRAME_RATE_HZ = 20.0
 JOINT_RATE_HZ = 1000
@@ -99,6 +108,9 @@ def bench_segmentation(session, renderer, pairs) -> dict[str, tuple[float, float
         name: PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds)
         for name in ("whole image", "region of interest")
     }
+    segmenters["region, side by side"] = ParallelPairSegmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds
+    )
     times = {name: [] for name in segmenters}
     for k, (frame, pair) in enumerate(zip(session.frames, pairs, strict=True)):
         names = list(segmenters)[k % 2 :] + list(segmenters)[: k % 2]
@@ -114,6 +126,8 @@ def bench_segmentation(session, renderer, pairs) -> dict[str, tuple[float, float
                 points_w = pose.world_from_base(catheter.backbone(frame.q, delta_L, arclengths))
                 segmenter.segment(pair.images, tuple(v.project(points_w) for v in scene.rig.views))
             times[name].append(time.perf_counter() - started)
+    for segmenter in segmenters.values():
+        segmenter.close()
     return {name: percentiles_ms(t[WARM_UP:]) for name, t in times.items()}
 
 
@@ -182,13 +196,14 @@ def bench_loop(items, scene, truth, segmenter=None, paced: bool = False) -> dict
 
 
 # --------------------------------------------------------------------------------- live
-def bench_live(seconds: float, folder: Path) -> DemoResult:
-    """The demo's live session for ``seconds`` (silent), its result."""
+def bench_live(seconds: float, folder: Path, worker: bool = True) -> DemoResult:
+    """The demo's live session for ``seconds`` (silent), its result; ``worker``: the views
+    after the first segmented in a worker process."""
     parser = argparse.ArgumentParser()
     add_rerun_args(parser, save_default=str(folder / "live.rrd"))
     results: list[DemoResult] = []
     run_demo(
-        DemoSettings(seconds=seconds, frame_rate_hz=FRAME_RATE_HZ),
+        DemoSettings(seconds=seconds, frame_rate_hz=FRAME_RATE_HZ, segmentation_worker=worker),
         parser.parse_args([]),
         out=lambda line: None,
         report=lambda line: print(f"    ({line})"),
@@ -235,6 +250,7 @@ def measure(args, session, renderer, pairs, markers, folder: Path) -> dict:
         pairs_items(pairs, session), scene, truth, segmenter, paced=True
     )
     out["live"] = live_row(bench_live(args.seconds, folder))
+    out["live, one process"] = live_row(bench_live(args.seconds, folder, worker=False))
     return out
 
 
@@ -246,8 +262,11 @@ def report(label: str, m: dict, quiet: dict | None) -> None:
     print(f"  {label} (load average {m['load']:.1f} when it started):")
     for name, (p50, p99) in m["segmentation"].items():
         print(f"    segmentation, {name:>18}: p50 {p50:6.2f} ms, p99 {p99:6.2f} ms")
-    gain = m["segmentation"]["whole image"][0] / m["segmentation"]["region of interest"][0]
+    seg = m["segmentation"]
+    gain = seg["whole image"][0] / seg["region of interest"][0]
     print(f"    region of interest: {gain:.2f}x faster at the median")
+    gain = seg["region of interest"][0] / seg["region, side by side"][0]
+    print(f"    views side by side (a worker process): {gain:.2f}x faster at the median")
     for name in ("loop, segmentation", "loop, markers", "loop, paced"):
         r = m[name]
         ok = verdict(r["p99"] <= TARGET_P99_MS)
@@ -257,6 +276,12 @@ def report(label: str, m: dict, quiet: dict | None) -> None:
         )
     loaded = quiet is not None
     report_live("live session", m["live"], quiet["live"] if loaded else None, loaded)
+    report_live(
+        "live, one process",
+        m["live, one process"],
+        quiet["live, one process"] if loaded else None,
+        loaded,
+    )
 
 
 def report_live(label: str, r: dict, quiet: dict | None, loaded: bool, factor: float = 1.0) -> None:
@@ -358,6 +383,10 @@ def main(argv=None) -> int:
             with slower(args.slower, LOOP_WORK):
                 margin = live_row(bench_live(args.seconds, Path(folder)))
                 report_live("quiet", margin, quiet["live"], False, args.slower)
+                margin = live_row(bench_live(args.seconds, Path(folder), worker=False))
+                report_live(
+                    "quiet, one process", margin, quiet["live, one process"], False, args.slower
+                )
                 if args.load:
                     with busy_processes(args.load):
                         margin = live_row(bench_live(args.seconds, Path(folder)))
