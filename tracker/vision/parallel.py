@@ -5,16 +5,17 @@ them together, and each view's state over time (its background model, its region
 interest) belongs to its camera alone (:class:`tracker.vision.background.CameraSegmenter`).
 :class:`ParallelPairSegmenter` therefore segments the first view in the calling process and
 the others in a worker process of their own, at the same time, and combines them where the
-caller is: on the 2-core development machine a pair then costs about the time of one view
-(1.3 ms against 2.4 ms, rehearsed 3 ms before as the live loop does, measured in
-``benchmarks/bench_latency.py``). Python threads would not do: the views' Python would take
-turns on the interpreter lock.
+caller is: on the 2-core development machine a pair then costs the caller its own view, the
+copy of the other's image and the combination (about a quarter less than both views, in
+``benchmarks/bench_latency.py`` and ``cathtrack demo``; docs/live.md). Python threads would
+not do: the views' Python would take turns on the interpreter lock.
 
 Requests, images (two slots per view, used in turn) and answers go through shared memory,
-with a sequence number each side polls while an answer or a frame is due within
-milliseconds, and a pipe to wake the worker otherwise: a request costs the caller a few
-microseconds. The results are those of :class:`PairSegmenter` on the same
-frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails to start, dies
+each marked done by a sequence number written last; a pipe wakes the side that waits. The
+caller polls for an answer for half a millisecond before it blocks (an answer that near
+comes sooner than a blocked thread wakes; a worker that other processes hold up is not
+made to share a processor with a poll). The results are those of :class:`PairSegmenter`
+on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails to start, dies
 or stops answering is reported once and its views are segmented in the calling process from
 then on (from the backgrounds given, which the background models then follow again): the
 caller never stops for it.
@@ -44,8 +45,10 @@ Array = np.ndarray
 
 START_TIMEOUT_S = 120.0  # a worker's start: imports and kernels loaded (compiled, the first time)
 ANSWER_TIMEOUT_S = 10.0  # a worker that takes longer over one request is taken for hung
-SPIN_S = 0.02  # how long the caller polls for an answer before it sleeps between looks, s
-REHEARSAL_SPIN_S = 0.02  # how long the worker polls for the frame after a rehearsal, s
+SPIN_S = 0.0005  # how long the caller polls for an answer before it blocks, s
+# How long the worker polls for the frame after a rehearsal before it blocks, s: none, as
+# measured (polling through the 3 ms to the frame gained nothing, and took a processor).
+REHEARSAL_SPIN_S = 0.0
 MAX_POINTS = 64  # predicted points per view passed as they are (more: their bounding box)
 _SLOTS = 2  # image slots per view: a request never writes the slot of the one before
 # The control words in the shared memory (int64), then each worker view's point count.
@@ -116,6 +119,9 @@ class ParallelPairSegmenter:
     report : callable, optional
         Receives one line when the worker fails and its views move to this process
         (default: standard error).
+    poll_s, worker_poll_s : float
+        How long the caller polls for an answer, and the worker for the frame after a
+        rehearsal, before they block, s (:data:`SPIN_S`, :data:`REHEARSAL_SPIN_S`).
 
     Attributes
     ----------
@@ -133,6 +139,8 @@ class ParallelPairSegmenter:
         settings: SegmentationSettings = DEFAULT_SETTINGS,
         *,
         report: Callable[[str], None] = _report_stderr,
+        poll_s: float = SPIN_S,
+        worker_poll_s: float = REHEARSAL_SPIN_S,
     ) -> None:
         # Here first: the kernels are compiled and cached (a fresh machine) before the
         # worker loads them. Its cameras after the first are the fallback.
@@ -140,12 +148,15 @@ class ParallelPairSegmenter:
         self.rig = rig
         self.segmenter = self.local.segmenter
         self.report = report
+        self.poll_s = float(poll_s)
+        self._worker_poll_s = float(worker_poll_s)
         self.worker_failure: str | None = None
         self._remote = tuple(range(1, rig.n_views))  # the worker's views
         self._shapes = tuple(self.local.cameras[v].background.image.shape for v in self._remote)
         self._slot = 0  # the slot of the images last written
         self._written: tuple = ()  # the image arrays last written there
         self._seq = 0  # of the last request
+        self._bells = 0  # answers whose wake-up signal may wait in the pipe
         self._process = self._bell = self._memory = self._shared = None
         if not self._remote:
             self.worker_failure = "one view only"
@@ -164,7 +175,7 @@ class ParallelPairSegmenter:
         self._shared = _Shared(self._memory, self._shapes)
         self._shared.control[:] = -1
         context = multiprocessing.get_context("spawn")  # no fork of a process with threads
-        wake, self._bell = context.Pipe(duplex=False)
+        wake, self._bell = context.Pipe()  # wakes the worker, and the caller for an answer
         self._process = context.Process(
             target=_serve,
             args=(
@@ -178,6 +189,7 @@ class ParallelPairSegmenter:
                 np.asarray(o_b_w_mm, float),
                 tuple(np.asarray(b) for b in backgrounds),
                 settings,
+                self._worker_poll_s,
             ),
             name="cathtrack-segmentation",
             daemon=True,
@@ -245,25 +257,39 @@ class ParallelPairSegmenter:
         control = self._shared.control
         seq = self._seq
         if control[_ANSWER] != seq:
-            # Polled at first: the answer is usually due within a millisecond, and waking
-            # from a blocking wait would cost more than that wait.
+            # Polled at first (an answer due within a fraction of a millisecond comes sooner
+            # than a blocked thread wakes), then waited for: a worker that other processes
+            # hold up (a busy machine) is not made to share its processor with a poll.
             started = time.monotonic()
-            spin_until = started + SPIN_S
+            spin_until = started + self.poll_s
             while control[_ANSWER] != seq:
                 now = time.monotonic()
                 if now < spin_until:
                     continue
+                try:
+                    if self._bell.poll(min(max(started + timeout_s - now, 0.0), 0.1)):
+                        self._drain()
+                except (EOFError, OSError):
+                    pass  # it has gone: told below
                 code = self._process.exitcode
-                if code is not None:
+                if code is not None and control[_ANSWER] != seq:
                     raise WorkerStopped(f"it ended with exit code {code}")
-                if now > started + timeout_s:
+                if time.monotonic() > started + timeout_s and control[_ANSWER] != seq:
                     raise WorkerStopped(f"no answer within {timeout_s:g} s")
-                time.sleep(0.0002)
+        self._bells += 1
         n = int(control[_ANSWER_BYTES])
         kind, value = pickle.loads(self._shared.answer[:n])
         if kind == "error":
             raise value
         return value
+
+    def _drain(self) -> None:
+        """Read the worker's wake-up signals for the caller (one per answer) that were not
+        waited for: off the critical path (:meth:`settle`, :meth:`rehearse`), so that the
+        pipe never fills."""
+        while self._bell.poll(0):
+            self._bell.recv_bytes()
+        self._bells = 0
 
     def _write(self, images: Sequence[Array], reuse: bool) -> int:
         """The slot holding the worker's views of ``images`` (written now unless ``reuse``
@@ -305,6 +331,8 @@ class ParallelPairSegmenter:
         if not self.parallel:
             return self.local.segment(images, predicted_px, settle=settle)
         images, predicted_px = self._checked(images, predicted_px)
+        if self._bells > 64:  # a caller that never settles
+            self.settle()
         sent = self._request(_SEGMENT, self._write(images, False), predicted_px)
         camera = self.local.cameras[0]
         # The worker's answer is taken whatever happens here, so that the next request
@@ -335,16 +363,21 @@ class ParallelPairSegmenter:
         """Average the frame segmented with ``settle=False`` into the background models
         (the worker settles its own as soon as it has answered, on its processor)."""
         self.local.settle()
+        if self.parallel and self._bells:
+            try:
+                self._drain()
+            except (EOFError, OSError):
+                pass  # a worker gone is told at the next frame
 
     def rehearse(
         self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
     ) -> None:
-        """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time,
-        then polls for the frame instead of sleeping (up to :data:`REHEARSAL_SPIN_S`)."""
+        """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time."""
         if not self.parallel:
             self.local.rehearse(images, predicted_px)
             return
         images, predicted_px = self._checked(images, predicted_px)
+        self.settle()
         self._request(_REHEARSE, self._write(images, True), predicted_px)
         self.local.cameras[0].rehearse(images[0], predicted_px[0])
 
@@ -459,7 +492,17 @@ def _shut(process, bell, shared, memory) -> None:
 
 # --------------------------------------------------------------------------- worker
 def _serve(
-    wake, memory_name, shapes, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings
+    wake,
+    memory_name,
+    shapes,
+    remote,
+    catheter,
+    rig,
+    R_w_b,
+    o_b_w_mm,
+    backgrounds,
+    settings,
+    poll_s,
 ) -> None:
     """The worker process: segment its views on request until told to stop, or until the
     caller's end of the pipe closes. Answers ``(kind, value)``: ``("ok", ...)`` or
@@ -472,7 +515,13 @@ def _serve(
     memory = shared_memory.SharedMemory(memory_name)
     shared = _Shared(memory, shapes)
     try:
-        _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+        try:
+            pair = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+        except Exception as exc:  # noqa: BLE001 (told to the caller, which goes on without)
+            _answer_with(shared, 0, ("error", WorkerStopped(f"{type(exc).__name__}: {exc}")))
+            wake.send_bytes(b"")
+            return
+        _work(wake, shared, [pair.cameras[v] for v in remote], poll_s)
     except (EOFError, OSError):
         pass  # the caller has gone
     finally:
@@ -480,16 +529,12 @@ def _serve(
         memory.close()
 
 
-def _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings):
+def _work(wake, shared, cameras, poll_s: float) -> None:
+    """Answer the caller's requests (see :func:`_serve`) until it says stop."""
     control = shared.control
-    try:
-        pair = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
-    except Exception as exc:  # noqa: BLE001 (told to the caller, which goes on without)
-        _answer_with(shared, 0, ("error", WorkerStopped(f"{type(exc).__name__}: {exc}")))
-        return
-    cameras = [pair.cameras[v] for v in remote]
     seen = int(control[_REQUEST])  # none is sent before this answer: ready
     _answer_with(shared, 0, ("ok", None))
+    wake.send_bytes(b"")
     spin_until = 0.0
     while True:
         while control[_REQUEST] == seen:
@@ -516,6 +561,7 @@ def _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, set
             except Exception as exc:  # noqa: BLE001 (raised again in the caller)
                 answer = ("error", exc)
             _answer_with(shared, seen, answer)
+            wake.send_bytes(b"")
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()
         elif kind == _REHEARSE:
@@ -524,7 +570,7 @@ def _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, set
                     camera.rehearse(shared.slots[k][slot], _taken_points(shared, k))
             except Exception:  # noqa: BLE001, S110 (a rehearsal changes nothing; the
                 pass  # frame's segmentation reports what is wrong)
-            spin_until = time.monotonic() + REHEARSAL_SPIN_S
+            spin_until = time.monotonic() + poll_s
         elif kind == _RESET:
             for camera in cameras:
                 camera.reset()
@@ -532,6 +578,7 @@ def _work(wake, shared, remote, catheter, rig, R_w_b, o_b_w_mm, backgrounds, set
             for camera in cameras:
                 camera.settle()
             _answer_with(shared, seen, ("ok", tuple(c.background.image for c in cameras)))
+            wake.send_bytes(b"")
         elif kind == _STOP:
             return
 
