@@ -15,10 +15,10 @@ each marked done by a sequence number written last; a pipe wakes the side that w
 caller polls for an answer for half a millisecond before it blocks (an answer that near
 comes sooner than a blocked thread wakes; a worker that other processes hold up is not
 made to share a processor with a poll). The results are those of :class:`PairSegmenter`
-on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails to start, dies
-or stops answering is reported once and its views are segmented in the calling process from
-then on (from the backgrounds given, which the background models then follow again): the
-caller never stops for it.
+on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails
+to start, dies or stops answering is reported once and its views are segmented in the
+calling process from then on (from the backgrounds given, which the background models then
+follow again): the caller never stops for it.
 """
 
 from __future__ import annotations
