@@ -257,3 +257,19 @@ def test_predicted_points_reach_the_worker_with_the_search_box_they_make(n):
     nan = np.full((MAX_POINTS + 5, 2), np.nan)
     count = parallel._put_points(nan, out)
     assert search_box(out[:count], 40.0, (480, 640)) == (0, 0, 640, 480)
+
+
+def test_a_worker_that_hangs_is_ended_after_the_timeout_and_its_views_are_done_here(
+    setup, monkeypatch
+):
+    monkeypatch.setattr(parallel, "ANSWER_TIMEOUT_S", 0.3)
+    pairs = setup[3]
+    lines = []
+    with make(setup, ParallelPairSegmenter, report=lines.append) as segmenter:
+        segmenter.segment(pairs[0])
+        process = segmenter._process
+        os.kill(process.pid, signal.SIGSTOP)
+        seg = segmenter.segment(pairs[1])
+        assert not segmenter.parallel and not process.is_alive()
+        assert np.isfinite(seg.views[1].tip_px).all()
+    assert len(lines) == 1 and "no answer within 0.3 s" in lines[0]

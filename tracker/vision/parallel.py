@@ -44,7 +44,7 @@ from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, chec
 Array = np.ndarray
 
 START_TIMEOUT_S = 120.0  # a worker's start: imports and kernels loaded (compiled, the first time)
-ANSWER_TIMEOUT_S = 10.0  # a worker that takes longer over one request is taken for hung
+ANSWER_TIMEOUT_S = 2.0  # a worker that takes longer over one request is taken for hung
 SPIN_S = 0.0005  # how long the caller polls for an answer before it blocks, s
 # How long the worker polls for the frame after a rehearsal before it blocks, s: none, as
 # measured (polling through the 3 ms to the frame gained nothing, and took a processor).
@@ -208,7 +208,7 @@ class ParallelPairSegmenter:
             f" {', '.join(self.rig.names[v] for v in self._remote)}"
             " segmented in this process from now on"
         )
-        _shut(self._process, self._bell, None, None)
+        _shut(self._process, self._bell, None, None, wait_s=0.0)
         self._process = self._bell = None
 
     @property
@@ -252,8 +252,10 @@ class ParallelPairSegmenter:
             return False
         return True
 
-    def _answer(self, timeout_s: float = ANSWER_TIMEOUT_S):
-        """The worker's answer to the last request (its value; its error raised again)."""
+    def _answer(self, timeout_s: float | None = None):
+        """The worker's answer to the last request (its value; its error raised again),
+        waited for up to ``timeout_s`` (default :data:`ANSWER_TIMEOUT_S`)."""
+        timeout_s = ANSWER_TIMEOUT_S if timeout_s is None else timeout_s
         control = self._shared.control
         seq = self._seq
         if control[_ANSWER] != seq:
@@ -467,8 +469,9 @@ def _taken_points(shared: _Shared, k: int) -> Array | None:
     return None if n < 0 else shared.points[k, :n].copy()
 
 
-def _shut(process, bell, shared, memory) -> None:
-    """Stop a worker and free its shared memory (each part that is there)."""
+def _shut(process, bell, shared, memory, wait_s: float = 2.0) -> None:
+    """Stop a worker and free its shared memory (each part that is there); a worker that has
+    not stopped within ``wait_s`` is ended (0: at once, one that failed)."""
     if bell is not None:
         if shared is not None and process is not None and process.is_alive():
             shared.control[_KIND] = _STOP
@@ -479,9 +482,9 @@ def _shut(process, bell, shared, memory) -> None:
             pass
         bell.close()
     if process is not None and process.pid is not None:
-        process.join(2.0)
+        process.join(wait_s)
         if process.is_alive():
-            process.terminate()
+            process.kill()  # a hung or stopped process too
             process.join(2.0)
     if shared is not None:
         shared.release()
