@@ -273,3 +273,17 @@ def test_a_worker_that_hangs_is_ended_after_the_timeout_and_its_views_are_done_h
         assert not segmenter.parallel and not process.is_alive()
         assert np.isfinite(seg.views[1].tip_px).all()
     assert len(lines) == 1 and "no answer within 0.3 s" in lines[0]
+
+
+def test_a_reset_is_taken_up_by_the_worker_before_the_next_request(setup):
+    """A request the worker has not read yet is replaced by the next one: a reset waits for
+    the worker's answer, so that a frame right after it cannot replace it."""
+    pairs = setup[3]
+    with make(setup, ParallelPairSegmenter) as segmenter:
+        segmenter.segment(pairs[0])
+        segmenter.reset()
+        control = segmenter._shared.control
+        assert control[parallel._ANSWER] == control[parallel._REQUEST] == segmenter._seq
+        assert control[parallel._KIND] == parallel._RESET
+        segmenter.segment(pairs[1])
+        assert segmenter.parallel

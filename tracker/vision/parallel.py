@@ -11,7 +11,9 @@ copy of the other's image and the combination (about a quarter less than both vi
 not do: the views' Python would take turns on the interpreter lock.
 
 Requests, images (two slots per view, used in turn) and answers go through shared memory,
-each marked done by a sequence number written last; a pipe wakes the side that waits. The
+each marked done by a sequence number written last; a pipe wakes the side that waits. Every
+request but a rehearsal waits for its answer, so that the next can only replace a rehearsal
+the worker has not taken up yet (which then does not happen: it changes nothing). The
 caller polls for an answer for half a millisecond before it blocks (an answer that near
 comes sooner than a blocked thread wakes; a worker that other processes hold up is not
 made to share a processor with a poll). The results are those of :class:`PairSegmenter`
@@ -386,8 +388,12 @@ class ParallelPairSegmenter:
     def reset(self) -> None:
         """Search the next frame's images whole (the backgrounds are kept)."""
         self.local.reset()
-        if self.parallel:
-            self._request(_RESET)
+        # Answered: a request not yet taken up is replaced by the next (a rehearsal may be).
+        if self.parallel and self._request(_RESET):
+            try:
+                self._answer()
+            except WorkerStopped as exc:
+                self._fail(f"the segmentation worker stopped ({exc})")
 
     @property
     def backgrounds(self) -> tuple[Array, ...]:
@@ -577,6 +583,8 @@ def _work(wake, shared, cameras, poll_s: float) -> None:
         elif kind == _RESET:
             for camera in cameras:
                 camera.reset()
+            _answer_with(shared, seen, ("ok", None))
+            wake.send_bytes(b"")
         elif kind == _BACKGROUNDS:
             for camera in cameras:
                 camera.settle()
