@@ -14,9 +14,9 @@ Requests, images (two slots per view, used in turn) and answers go through share
 each marked done by a sequence number written last; a pipe wakes the side that waits. Every
 request but a rehearsal waits for its answer, so that the next can only replace a rehearsal
 the worker has not taken up yet (which then does not happen: it changes nothing). The
-caller polls for an answer for half a millisecond before it blocks (an answer that near
-comes sooner than a blocked thread wakes; a worker that other processes hold up is not
-made to share a processor with a poll). The results are those of :class:`PairSegmenter`
+caller polls for an answer (up to :data:`SPIN_S`) before it blocks: a blocked thread on a
+busy machine waits for a time slice of whatever else runs on its processor once woken; the
+worker blocks between requests. The results are those of :class:`PairSegmenter`
 on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails
 to start, dies or stops answering is reported once and its views are segmented in the
 calling process from then on (from the backgrounds given, which the background models then
@@ -47,7 +47,10 @@ Array = np.ndarray
 
 START_TIMEOUT_S = 120.0  # a worker's start: imports and kernels loaded (compiled, the first time)
 ANSWER_TIMEOUT_S = 2.0  # a worker that takes longer over one request is taken for hung
-SPIN_S = 0.0005  # how long the caller polls for an answer before it blocks, s
+# How long the caller polls for an answer before it blocks, s: a blocked caller on a busy
+# machine waits for its processor again when the answer comes (a time slice of the other
+# process there), which costs more than polling.
+SPIN_S = 0.02
 # How long the worker polls for the frame after a rehearsal before it blocks, s: none, as
 # measured (polling through the 3 ms to the frame gained nothing, and took a processor).
 REHEARSAL_SPIN_S = 0.0
@@ -261,9 +264,7 @@ class ParallelPairSegmenter:
         control = self._shared.control
         seq = self._seq
         if control[_ANSWER] != seq:
-            # Polled at first (an answer due within a fraction of a millisecond comes sooner
-            # than a blocked thread wakes), then waited for: a worker that other processes
-            # hold up (a busy machine) is not made to share its processor with a poll.
+            # Polled at first (see SPIN_S), then waited for.
             started = time.monotonic()
             spin_until = started + self.poll_s
             while control[_ANSWER] != seq:
