@@ -81,7 +81,7 @@ def assert_same(a, b):
         assert a == b
 
 
-def run_frames(segmenter, setup, rehearse=True):
+def run_frames(segmenter, setup, rehearse=True, before_settle=None):
     """Segment the pairs as the live loop does; each result's comparable parts."""
     pairs = setup[3]
     out = []
@@ -91,9 +91,21 @@ def run_frames(segmenter, setup, rehearse=True):
         if k == 8:
             segmenter.reset()
         seg = segmenter.segment(images, regions(setup, k), settle=k % 2 == 0)
+        if before_settle is not None:
+            before_settle(segmenter, k)
         segmenter.settle()
         out.append(seg)
     return out
+
+
+def assert_same_results(expected, got):
+    for a, b in zip(expected, got, strict=True):
+        for x, y in zip((*a.uv, *a.cov, a.rejected), (*b.uv, *b.cov, b.rejected), strict=True):
+            assert_same(x, y)
+        assert a.tip_refined == b.tip_refined
+        for va, vb in zip(a.views, b.views, strict=True):
+            for x, y in zip(fields(va), fields(vb), strict=True):
+                assert_same(x, y)
 
 
 def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
@@ -105,13 +117,8 @@ def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
         assert worked.parallel
         expected, got = run_frames(reference, setup), run_frames(worked, setup)
         assert worked.parallel, worked.worker_failure  # the worker did them all
-        for a, b in zip(expected, got, strict=True):
-            for x, y in zip((*a.uv, *a.cov, a.rejected), (*b.uv, *b.cov, b.rejected), strict=True):
-                assert_same(x, y)
-            assert a.tip_refined == b.tip_refined
-            for va, vb in zip(a.views, b.views, strict=True):
-                for x, y in zip(fields(va), fields(vb), strict=True):
-                    assert_same(x, y)
+        assert worked.moves == 0 and worked.frames_here == 0
+        assert_same_results(expected, got)
         backgrounds = worked.backgrounds
     assert np.isfinite(np.concatenate([np.ravel(s.uv) for s in expected])).mean() > 0.9
     assert not np.array_equal(reference.backgrounds[1], setup[2].backgrounds[1])  # updated
@@ -287,3 +294,52 @@ def test_a_reset_is_taken_up_by_the_worker_before_the_next_request(setup):
         assert control[parallel._KIND] == parallel._RESET
         segmenter.segment(pairs[1])
         assert segmenter.parallel
+
+
+def test_views_moved_here_and_back_with_their_state_give_the_same_results(setup):
+    """A worker held up gives its views to the caller between frames, and takes them back
+    later: their background models, regions and noise go along, so that every frame is
+    segmented as one process would, bit for bit."""
+
+    def move(segmenter, k):
+        if k == 4:  # as when the worker kept the caller waiting in half the last frames
+            segmenter._move_here = True
+        if k == 9:
+            assert segmenter.here
+            segmenter._here_since = -np.inf  # RETRY_S ago
+    reference = make(setup, PairSegmenter)
+    with make(setup, ParallelPairSegmenter) as worked:
+        expected = run_frames(reference, setup)
+        got = run_frames(worked, setup, before_settle=move)
+        assert worked.parallel and not worked.here
+        assert worked.moves == 1 and worked.frames_here == 5  # frames 5 to 9
+        assert_same_results(expected, got)
+        backgrounds = worked.backgrounds
+    for a, b in zip(reference.backgrounds, backgrounds, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monkeypatch):
+    """Waits longer than LAG_S after the caller's own view in half of the last LAG_FRAMES
+    frames (here: every wait counts) move the views here at the next settle."""
+    monkeypatch.setattr(parallel, "LAG_S", -1.0)
+    pairs = setup[3]
+    with make(setup, ParallelPairSegmenter) as segmenter:
+        for k in range(parallel.LAG_FRAMES):
+            assert not segmenter.here
+            segmenter.segment(pairs[k % len(pairs)], settle=False)
+            segmenter.settle()
+        assert segmenter.here and segmenter.moves == 1
+        seg = segmenter.segment(pairs[0])
+        assert np.isfinite(seg.views[1].tip_px).all() and segmenter.frames_here == 1
+
+
+def test_the_user_is_told_whether_the_views_were_segmented_side_by_side(setup):
+    with make(setup, ParallelPairSegmenter) as segmenter:
+        assert segmenter.describe() == "yes"
+        segmenter.moves, segmenter.frames_here, segmenter.frames = 2, 30, 300
+        assert segmenter.describe() == (
+            "yes, but 30 of 300 frames in the loop's process (the worker held up by other"
+            " work: 2 times)"
+        )
+    assert segmenter.describe() == "no (closed)"

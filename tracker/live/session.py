@@ -358,8 +358,7 @@ class LiveSession:
             summary = self.tracker.summary
             summary.stop_reason = "interrupted"
         if isinstance(self.segmenter, ParallelPairSegmenter):
-            failure = self.segmenter.worker_failure
-            summary.segmentation_worker = "yes" if failure is None else f"no ({failure})"
+            summary.segmentation_worker = self.segmenter.describe()
         return summary
 
     def close(self) -> None:

@@ -25,6 +25,7 @@ follow again): the caller never stops for it.
 
 from __future__ import annotations
 
+import collections
 import multiprocessing
 import os
 import pickle
@@ -59,7 +60,13 @@ _SLOTS = 2  # image slots per view: a request never writes the slot of the one b
 # The control words in the shared memory (int64), then each worker view's point count.
 _REQUEST, _KIND, _SLOT, _ANSWER, _ANSWER_BYTES = range(5)
 _COUNTS = 8
-_SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP = range(1, 6)
+_SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP, _HAND_OVER, _TAKE_BACK = range(1, 8)
+# A worker that keeps the caller waiting (another process on its processor) gives its views
+# back: when the caller waited more than LAG_S for it after its own view in half of the last
+# LAG_FRAMES frames. They go to the worker again after RETRY_S.
+LAG_S = 0.002
+LAG_FRAMES = 20
+RETRY_S = 30.0
 
 
 def _report_stderr(message: str) -> None:
@@ -162,6 +169,12 @@ class ParallelPairSegmenter:
         self._written: tuple = ()  # the image arrays last written there
         self._seq = 0  # of the last request
         self._bells = 0  # answers whose wake-up signal may wait in the pipe
+        self.here = False  # the worker's views segmented here for now (it kept us waiting)
+        self._here_since = 0.0
+        self._lagged: collections.deque[bool] = collections.deque(maxlen=LAG_FRAMES)
+        self._move_here = False
+        self.moves = 0  # times the views came here
+        self.frames = self.frames_here = 0
         self._process = self._bell = self._memory = self._shared = None
         if not self._remote:
             self.worker_failure = "one view only"
@@ -215,6 +228,18 @@ class ParallelPairSegmenter:
         )
         _shut(self._process, self._bell, None, None, wait_s=0.0)
         self._process = self._bell = None
+
+    def describe(self) -> str:
+        """Whether the views were segmented side by side, for the user: "yes", or "yes"
+        with the frames the worker's views were segmented here, or "no (why)"."""
+        if self.worker_failure is not None:
+            return f"no ({self.worker_failure})"
+        if not self.moves:
+            return "yes"
+        return (
+            f"yes, but {self.frames_here} of {self.frames} frames in the loop's process (the"
+            f" worker held up by other work: {self.moves} times)"
+        )
 
     @property
     def parallel(self) -> bool:
@@ -333,7 +358,9 @@ class ParallelPairSegmenter:
         settle: bool = True,
     ) -> PairSegmentation:
         """Segment one synchronised frame (:meth:`PairSegmenter.segment`)."""
-        if not self.parallel:
+        self.frames += 1
+        if not self.parallel or self.here:
+            self.frames_here += self.here
             return self.local.segment(images, predicted_px, settle=settle)
         images, predicted_px = self._checked(images, predicted_px)
         if self._bells > 64:  # a caller that never settles
@@ -347,7 +374,11 @@ class ParallelPairSegmenter:
                 camera.segment(images[0], predicted_px[0], settle=settle)
             )
         finally:
+            own_s = time.monotonic()
             others = self._others(sent, images, predicted_px, settle)
+        self._lagged.append(time.monotonic() - own_s > LAG_S)
+        if len(self._lagged) == LAG_FRAMES and 2 * sum(self._lagged) >= LAG_FRAMES:
+            self._move_here = True  # done in settle(), off the critical path
         return combine_views(self.segmenter, (first, *others), self.rig)
 
     def _others(self, sent: bool, images, predicted_px, settle: bool) -> tuple:
@@ -366,19 +397,65 @@ class ParallelPairSegmenter:
 
     def settle(self) -> None:
         """Average the frame segmented with ``settle=False`` into the background models
-        (the worker settles its own as soon as it has answered, on its processor)."""
+        (the worker settles its own as soon as it has answered, on its processor).
+
+        Between frames, too, the worker's views come here when it has kept the caller
+        waiting (another process on its processor: :data:`LAG_S`), and go back to it
+        :data:`RETRY_S` later: each move takes their state along (a few milliseconds, here)."""
         self.local.settle()
-        if self.parallel and self._bells:
-            try:
+        if not self.parallel:
+            return
+        try:
+            if self._bells:
                 self._drain()
-            except (EOFError, OSError):
-                pass  # a worker gone is told at the next frame
+            if self._move_here:
+                self._take_views()
+            elif self.here and time.monotonic() - self._here_since > RETRY_S:
+                self._give_views()
+        except (EOFError, OSError, WorkerStopped) as exc:
+            self._fail(f"the segmentation worker stopped ({exc})")
+
+    def _take_views(self) -> None:
+        """The worker's views, their state included, segmented here from now on."""
+        self._move_here = False
+        self._lagged.clear()
+        if not self._request(_HAND_OVER):
+            return
+        cameras = pickle.loads(self._payload())
+        local = list(self.local.cameras)
+        for v, camera in zip(self._remote, cameras, strict=True):
+            camera.segmenter = self.segmenter
+            local[v] = camera
+        self.local.cameras = tuple(local)
+        self.here, self._here_since = True, time.monotonic()
+        self.moves += 1
+
+    def _give_views(self) -> None:
+        """The views taken here back to the worker, their state included."""
+        self._bell.send_bytes(
+            pickle.dumps(
+                tuple(self.local.cameras[v] for v in self._remote), pickle.HIGHEST_PROTOCOL
+            )
+        )
+        if self._request(_TAKE_BACK):
+            self._answer()
+            self.here = False
+
+    def _payload(self) -> bytes:
+        """The next message from the worker that is not a wake-up signal."""
+        deadline = time.monotonic() + ANSWER_TIMEOUT_S
+        while True:
+            if not self._bell.poll(max(deadline - time.monotonic(), 0.0)):
+                raise WorkerStopped(f"no answer within {ANSWER_TIMEOUT_S:g} s")
+            data = self._bell.recv_bytes()
+            if data:
+                return data
 
     def rehearse(
         self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
     ) -> None:
         """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time."""
-        if not self.parallel:
+        if not self.parallel or self.here:
             self.local.rehearse(images, predicted_px)
             return
         images, predicted_px = self._checked(images, predicted_px)
@@ -390,7 +467,7 @@ class ParallelPairSegmenter:
         """Search the next frame's images whole (the backgrounds are kept)."""
         self.local.reset()
         # Answered: a request not yet taken up is replaced by the next (a rehearsal may be).
-        if self.parallel and self._request(_RESET):
+        if self.parallel and not self.here and self._request(_RESET):
             try:
                 self._answer()
             except WorkerStopped as exc:
@@ -400,7 +477,7 @@ class ParallelPairSegmenter:
     def backgrounds(self) -> tuple[Array, ...]:
         """Each camera's current background model (uint8), the last frame averaged in."""
         local = self.local.backgrounds
-        if not self.parallel or not self._request(_BACKGROUNDS):
+        if not self.parallel or self.here or not self._request(_BACKGROUNDS):
             return local
         try:
             others = self._answer()
@@ -531,7 +608,7 @@ def _serve(
             _answer_with(shared, 0, ("error", WorkerStopped(f"{type(exc).__name__}: {exc}")))
             wake.send_bytes(b"")
             return
-        _work(wake, shared, [pair.cameras[v] for v in remote], poll_s)
+        _work(wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s)
     except (EOFError, OSError):
         pass  # the caller has gone
     finally:
@@ -539,10 +616,11 @@ def _serve(
         memory.close()
 
 
-def _work(wake, shared, cameras, poll_s: float) -> None:
+def _work(wake, shared, cameras, segmenter, poll_s: float) -> None:
     """Answer the caller's requests (see :func:`_serve`) until it says stop."""
     control = shared.control
     seen = int(control[_REQUEST])  # none is sent before this answer: ready
+    payload: list[bytes] = []
     _answer_with(shared, 0, ("ok", None))
     wake.send_bytes(b"")
     spin_until = 0.0
@@ -553,7 +631,9 @@ def _work(wake, shared, cameras, poll_s: float) -> None:
                 continue
             if wake.poll(1.0):
                 while wake.poll(0):
-                    wake.recv_bytes()  # EOFError once the caller has closed its end
+                    data = wake.recv_bytes()  # EOFError once the caller has closed its end
+                    if data:  # views given back: kept for the request that follows
+                        payload.append(data)
         seen = int(control[_REQUEST])
         kind, slot = int(control[_KIND]), int(control[_SLOT])
         spin_until = 0.0
@@ -590,6 +670,20 @@ def _work(wake, shared, cameras, poll_s: float) -> None:
             for camera in cameras:
                 camera.settle()
             _answer_with(shared, seen, ("ok", tuple(c.background.image for c in cameras)))
+            wake.send_bytes(b"")
+        elif kind == _HAND_OVER:
+            for camera in cameras:
+                camera.settle()
+            wake.send_bytes(pickle.dumps(tuple(cameras), pickle.HIGHEST_PROTOCOL))
+        elif kind == _TAKE_BACK:
+            while not payload:
+                data = wake.recv_bytes()
+                if data:
+                    payload.append(data)
+            cameras[:] = pickle.loads(payload.pop(0))
+            for camera in cameras:
+                camera.segmenter = segmenter
+            _answer_with(shared, seen, ("ok", None))
             wake.send_bytes(b"")
         elif kind == _STOP:
             return
