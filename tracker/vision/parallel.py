@@ -19,8 +19,9 @@ busy machine waits for a time slice of whatever else runs on its processor once 
 worker blocks between requests. The results are those of :class:`PairSegmenter`
 on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails
 to start, dies or stops answering is reported once and its views are segmented in the
-calling process from then on (from the backgrounds given, which the background models then
-follow again): the caller never stops for it.
+calling process from then on (their background models started again from the backgrounds
+given): the caller never stops for it. A worker that keeps the caller waiting (another
+process on its processor) hands its views over between frames, and takes them back later.
 """
 
 from __future__ import annotations
