@@ -53,9 +53,10 @@ ANSWER_TIMEOUT_S = 2.0  # a worker that takes longer over one request is taken f
 # machine waits for its processor again when the answer comes (a time slice of the other
 # process there), which costs more than polling.
 SPIN_S = 0.02
-# How long the worker polls for the frame after a rehearsal before it blocks, s: none, as
-# measured (polling through the 3 ms to the frame gained nothing, and took a processor).
-REHEARSAL_SPIN_S = 0.0
+# How long the worker polls for the frame after a rehearsal before it blocks, s: the frame is
+# due some 3 ms later, and a worker that blocks must then be woken and scheduled again on a
+# processor that the loop's other threads and processes share.
+REHEARSAL_SPIN_S = 0.02
 MAX_POINTS = 64  # predicted points per view passed as they are (more: their bounding box)
 _SLOTS = 2  # image slots per view: a request never writes the slot of the one before
 # The control words in the shared memory (int64), then each worker view's point count.
