@@ -39,9 +39,7 @@ def setup():
 
 def make(setup, kind, **kwargs):
     catheter, scene, renderer, _ = setup
-    return kind(
-        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds, **kwargs
-    )
+    return kind(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds, **kwargs)
 
 
 def regions(setup, k):
@@ -183,7 +181,11 @@ def test_bad_input_raises_as_in_one_process_and_the_worker_stays_in_step(setup):
     pairs = setup[3]
     reference = make(setup, PairSegmenter)
     with make(setup, ParallelPairSegmenter) as segmenter:
-        for bad in ((pairs[0][0],), (pairs[0][0], pairs[0][1][:-1]), (pairs[0][0][:, 1:], pairs[0][1])):
+        for bad in (
+            (pairs[0][0],),
+            (pairs[0][0], pairs[0][1][:-1]),
+            (pairs[0][0][:, 1:], pairs[0][1]),
+        ):
             with pytest.raises(ValueError) as expected:
                 reference.segment(bad)
             with pytest.raises(ValueError) as got:
@@ -307,6 +309,7 @@ def test_views_moved_here_and_back_with_their_state_give_the_same_results(setup)
         if k == 9:
             assert segmenter.here
             segmenter._here_since = -np.inf  # RETRY_S ago
+
     reference = make(setup, PairSegmenter)
     with make(setup, ParallelPairSegmenter) as worked:
         expected = run_frames(reference, setup)
@@ -319,16 +322,19 @@ def test_views_moved_here_and_back_with_their_state_give_the_same_results(setup)
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monkeypatch):
+@pytest.mark.parametrize("deferred", [True, False])
+def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monkeypatch, deferred):
     """Waits longer than LAG_S after the caller's own view in half of the last LAG_FRAMES
-    frames (here: every wait counts) move the views here at the next settle."""
+    frames (here: every wait counts) move the views here between frames: at the next settle,
+    or at the end of a frame segmented with settle=True."""
     monkeypatch.setattr(parallel, "LAG_S", -1.0)
     pairs = setup[3]
     with make(setup, ParallelPairSegmenter) as segmenter:
         for k in range(parallel.LAG_FRAMES):
             assert not segmenter.here
-            segmenter.segment(pairs[k % len(pairs)], settle=False)
-            segmenter.settle()
+            segmenter.segment(pairs[k % len(pairs)], settle=not deferred)
+            if deferred:
+                segmenter.settle()
         assert segmenter.here and segmenter.moves == 1
         seg = segmenter.segment(pairs[0])
         assert np.isfinite(seg.views[1].tip_px).all() and segmenter.frames_here == 1

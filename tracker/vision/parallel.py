@@ -363,10 +363,13 @@ class ParallelPairSegmenter:
         self.frames += 1
         if not self.parallel or self.here:
             self.frames_here += self.here
-            return self.local.segment(images, predicted_px, settle=settle)
+            pair = self.local.segment(images, predicted_px, settle=settle)
+            if settle and self.here:
+                self._between_frames()
+            return pair
         images, predicted_px = self._checked(images, predicted_px)
         if self._bells > 64:  # a caller that never settles
-            self.settle()
+            self._between_frames()
         sent = self._request(_SEGMENT, self._write(images, False), predicted_px)
         camera = self.local.cameras[0]
         # The worker's answer is taken whatever happens here, so that the next request
@@ -380,8 +383,11 @@ class ParallelPairSegmenter:
             others = self._others(sent, images, predicted_px, settle)
         self._lagged.append(time.monotonic() - own_s > LAG_S)
         if len(self._lagged) == LAG_FRAMES and 2 * sum(self._lagged) >= LAG_FRAMES:
-            self._move_here = True  # done in settle(), off the critical path
-        return combine_views(self.segmenter, (first, *others), self.rig)
+            self._move_here = True  # done between frames, off the critical path
+        pair = combine_views(self.segmenter, (first, *others), self.rig)
+        if settle:  # nothing is deferred: this is between frames
+            self._between_frames()
+        return pair
 
     def _others(self, sent: bool, images, predicted_px, settle: bool) -> tuple:
         if sent:
@@ -403,8 +409,13 @@ class ParallelPairSegmenter:
 
         Between frames, too, the worker's views come here when it has kept the caller
         waiting (another process on its processor: :data:`LAG_S`), and go back to it
-        :data:`RETRY_S` later: each move takes their state along (a few milliseconds, here)."""
+        :data:`RETRY_S` later: each move takes their state along (about 10 ms, once). A frame
+        segmented with ``settle=True`` does this itself."""
         self.local.settle()
+        self._between_frames()
+
+    def _between_frames(self) -> None:
+        """Read the wake-up signals not waited for; move the views here or back if due."""
         if not self.parallel:
             return
         try:
