@@ -324,20 +324,33 @@ def test_views_moved_here_and_back_with_their_state_give_the_same_results(setup)
 
 @pytest.mark.parametrize("deferred", [True, False])
 def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monkeypatch, deferred):
-    """Waits longer than LAG_S after the caller's own view in half of the last LAG_FRAMES
-    frames (here: every wait counts) move the views here between frames: at the next settle,
-    or at the end of a frame segmented with settle=True."""
+    """Waits longer than LAG_S after the caller's own view in LAG_COUNT of the last
+    LAG_FRAMES frames (here: every wait counts) move the views here between frames: at the
+    next settle, or at the end of a frame segmented with settle=True; they go back RETRY_S
+    later, twice as long after the next move."""
     monkeypatch.setattr(parallel, "LAG_S", -1.0)
     pairs = setup[3]
     with make(setup, ParallelPairSegmenter) as segmenter:
-        for k in range(parallel.LAG_FRAMES):
-            assert not segmenter.here
+
+        def frame(k):
             segmenter.segment(pairs[k % len(pairs)], settle=not deferred)
             if deferred:
                 segmenter.settle()
+
+        for k in range(parallel.LAG_COUNT):
+            assert not segmenter.here
+            frame(k)
         assert segmenter.here and segmenter.moves == 1
         seg = segmenter.segment(pairs[0])
         assert np.isfinite(seg.views[1].tip_px).all() and segmenter.frames_here == 1
+        assert segmenter._retry_s == parallel.RETRY_S
+        segmenter._here_since -= parallel.RETRY_S + 1.0
+        frame(0)  # back to the worker...
+        assert not segmenter.here
+        for k in range(parallel.LAG_COUNT):  # ...which keeps the caller waiting again
+            frame(k)
+        assert segmenter.here and segmenter.moves == 2
+        assert segmenter._retry_s == 2 * parallel.RETRY_S
 
 
 def test_the_user_is_told_whether_the_views_were_segmented_side_by_side(setup):
