@@ -31,6 +31,7 @@ from tracker.io.datagrams import decode_estimate, encode_joints, encode_markers
 from tracker.io.recording import RecordingWriter, open_recording
 from tracker.live.sinks import CSV_COLUMNS
 from tracker.viewer import layout
+from tracker.vision.parallel import parallel_possible
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK = "127.0.0.1"
@@ -149,6 +150,59 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
         "yes" if permitted else "no"
     )
     assert str(rrd) in table_value(out, "rerun recording")
+    # The views side by side wherever this process may use two processors.
+    if parallel_possible():
+        assert table_value(out, "views segmented side by side (a worker process)").startswith(
+            "yes"
+        )
+
+
+def test_the_demo_goes_on_when_the_segmentation_worker_dies_mid_session(tmp_path, monkeypatch):
+    """Killed after the tenth frame: one line says so, every later frame is segmented in the
+    loop's process, every pair is estimated and the summary tells."""
+    import argparse
+
+    import replay.demo
+    from replay.demo import DemoSettings, run_demo
+    from tracker.viewer.output import add_rerun_args
+    from tracker.vision.parallel import ParallelPairSegmenter
+
+    made = []
+
+    def segmenter_that_dies(*args, parallel=None, **kwargs):  # noqa: ARG001 (always one)
+        segmenter = ParallelPairSegmenter(*args, **kwargs)
+        segment = segmenter.segment
+
+        def segment_then_die(*a, **k):
+            result = segment(*a, **k)
+            if segmenter.frames == 10:
+                os.kill(segmenter._process.pid, signal.SIGKILL)
+            return result
+
+        segmenter.segment = segment_then_die
+        made.append(segmenter)
+        return segmenter
+
+    monkeypatch.setattr(replay.demo, "pair_segmenter", segmenter_that_dies)
+    parser = argparse.ArgumentParser()
+    add_rerun_args(parser, save_default=str(tmp_path / "demo.rrd"))
+    lines, results = [], []
+    code = run_demo(
+        DemoSettings(seconds=2.0, images=False),
+        parser.parse_args([]),
+        out=lambda line: None,
+        report=lines.append,
+        on_result=results.append,
+    )
+    assert code == 0 and len(made) == 1
+    summary = results[0].summary
+    worker_lines = [line for line in lines if "segmentation worker stopped" in line]
+    assert len(worker_lines) == 1 and "exit code -9" in worker_lines[0], lines
+    assert summary.segmentation_worker.startswith("no (the segmentation worker stopped")
+    assert summary.frames_processed + summary.frames_dropped == 40
+    assert summary.frames_processed >= 30 and summary.frames_rejected == 0
+    assert results[0].estimates_received == results[0].estimates_sent == summary.frames_processed
+    assert results[0].scores["ukf"].row()["rms_deg"] < 5.0
 
 
 # ------------------------------------------------------------------------------ track
