@@ -363,6 +363,47 @@ def test_video_files_through_segmentation_track_the_truth(rendered, tmp_path, co
     assert np.degrees(np.max(np.abs(errors))) < 3.0
 
 
+def test_video_files_with_the_views_side_by_side_give_the_same_estimates(
+    rendered, tmp_path, controller
+):
+    """``cathtrack track --video``'s loop with the segmentation worker (its default with two
+    processors) estimates every frame as the loop segmenting both views itself, exactly."""
+    from tracker.vision.parallel import ParallelPairSegmenter
+
+    session, renderer, _ = rendered
+    scene = session.scene
+    rng = np.random.default_rng(6)
+    pairs = [renderer.render(f.q, f.delta_L_true_rad, rng).images for f in session.frames]
+    front = write_video(tmp_path / "front.avi", [p[0] for p in pairs], fps=10.0)
+    side = write_video(tmp_path / "side.avi", [p[1] for p in pairs], fps=10.0)
+    args = (scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds)
+    estimates = []
+    for segmenter in (PairSegmenter(*args), ParallelPairSegmenter(*args)):
+        with (
+            segmenter,
+            VideoSource([str(front), str(side)]) as video,
+            JointReceiver(port=0, clock="sender") as joints,
+        ):
+            controller.next_sample = 0  # the same joints again
+            controller.send_joints_until(1.0, joints.address)
+            memory = MemorySink()
+            summary = run_live(
+                video,
+                reconstructor_of(session),
+                make_estimator("ukf", scene.catheter),
+                [memory],
+                joints=joints,
+                segmenter=segmenter,
+                handle_signals=False,
+            )
+        assert summary.frames_processed == len(pairs)
+        estimates.append([(r.estimate.delta_L_rad, r.estimate.std_rad) for r in memory.results])
+    assert isinstance(segmenter, ParallelPairSegmenter) and segmenter.worker_failure == "closed"
+    assert segmenter.frames_here == 0 and segmenter.frames == len(pairs)  # all side by side
+    assert np.isfinite(np.array(estimates)).all()
+    assert estimates[0] == estimates[1]
+
+
 def test_images_without_a_segmenter_are_a_clear_error(noisy_session):
     memory = MemorySink()
     images = [ImageSet(0.0, (np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8)))]

@@ -337,7 +337,7 @@ def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monk
             if deferred:
                 segmenter.settle()
 
-        for k in range(parallel.LAG_COUNT):
+        for k in range(parallel.GRACE_FRAMES + parallel.LAG_COUNT):
             assert not segmenter.here
             frame(k)
         assert segmenter.here and segmenter.moves == 1
@@ -347,7 +347,7 @@ def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monk
         segmenter._here_since -= parallel.RETRY_S + 1.0
         frame(0)  # back to the worker...
         assert not segmenter.here
-        for k in range(parallel.LAG_COUNT):  # ...which keeps the caller waiting again
+        for k in range(parallel.GRACE_FRAMES + parallel.LAG_COUNT):  # ...held up again
             frame(k)
         assert segmenter.here and segmenter.moves == 2
         assert segmenter._retry_s == 2 * parallel.RETRY_S

@@ -368,7 +368,13 @@ class PairSegmenter:
 
     def close(self) -> None:
         """Nothing to release (as :class:`tracker.vision.parallel.ParallelPairSegmenter`'s
-        ``close``, which stops its worker process)."""
+        ``close``, which stops its worker process; either is a context manager)."""
+
+    def __enter__(self) -> PairSegmenter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def rehearse(
         self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None

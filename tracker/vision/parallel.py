@@ -68,9 +68,12 @@ _SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP, _HAND_OVER, _TAKE_BACK = range
 # last LAG_FRAMES frames (2%: the tail of the latency, not only its median; quiet, the wait
 # is 0.4 ms at the median and under 2 ms in every frame, measured). They go to the worker
 # again RETRY_S later, twice as long after each move (up to MAX_RETRY_S).
+# The first GRACE_FRAMES frames with the worker do not count: a first frame loads what it
+# needs and searches whole images (100 ms has been seen), and the next few start cold.
 LAG_S = 0.002
 LAG_FRAMES = 200
 LAG_COUNT = 4
+GRACE_FRAMES = 10
 RETRY_S = 30.0
 MAX_RETRY_S = 600.0
 
@@ -180,6 +183,7 @@ class ParallelPairSegmenter:
         self._retry_s = RETRY_S
         self._lagged: collections.deque[bool] = collections.deque(maxlen=LAG_FRAMES)
         self._move_here = False
+        self._grace = GRACE_FRAMES  # frames with the worker before its waits count
         self.moves = 0  # times the views came here
         self.frames = self.frames_here = 0
         self._process = self._bell = self._memory = self._shared = None
@@ -387,7 +391,10 @@ class ParallelPairSegmenter:
             own_s = time.monotonic()
             others = self._others(sent, images, predicted_px, settle)
         lagged = time.monotonic() - own_s > LAG_S
-        self._lagged.append(lagged)
+        if self._grace:
+            self._grace -= 1
+        else:
+            self._lagged.append(lagged)
         if lagged and sum(self._lagged) >= LAG_COUNT:
             self._move_here = True  # done between frames, off the critical path
         pair = combine_views(self.segmenter, (first, *others), self.rig)
@@ -462,6 +469,7 @@ class ParallelPairSegmenter:
         if self._request(_TAKE_BACK):
             self._answer()
             self.here = False
+            self._grace = GRACE_FRAMES
 
     def _payload(self) -> bytes:
         """The next message from the worker that is not a wake-up signal."""
