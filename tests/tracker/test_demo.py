@@ -152,9 +152,30 @@ def test_demo_tracks_rendered_images_live_and_writes_a_readable_rrd(tmp_path, ca
     assert str(rrd) in table_value(out, "rerun recording")
     # The views side by side wherever this process may use two processors.
     if parallel_possible():
-        assert table_value(out, "views segmented side by side (a worker process)").startswith(
-            "yes"
-        )
+        assert table_value(out, "views segmented side by side (a worker process)").startswith("yes")
+
+
+def test_no_segmentation_worker_keeps_every_view_in_the_loops_process(
+    tmp_path, capsys, monkeypatch
+):
+    import replay.demo
+    from tracker.vision import parallel
+
+    asked = []
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs["parallel"])
+        return parallel.pair_segmenter(*args, **kwargs)
+
+    monkeypatch.setattr(replay.demo, "pair_segmenter", recorded)
+    rrd = tmp_path / "demo.rrd"
+    argv = ["demo", "--seconds", "1", "--no-images", "--no-segmentation-worker", "--save", str(rrd)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert asked == [False]
+    assert "views segmented side by side" not in out
+    processed = int(table_value(out, "frames processed / dropped / predict-only").split(" / ")[0])
+    assert processed >= 10
 
 
 def test_the_demo_goes_on_when_the_segmentation_worker_dies_mid_session(tmp_path, monkeypatch):
