@@ -327,12 +327,19 @@ def test_images_are_segmented_in_the_loop(rendered, controller):
     assert np.degrees(np.max(np.abs(errors))) < 3.0
 
 
+def rendered_videos(rendered, folder, seed):
+    """The session's pairs rendered, and written as two lossless video files (10 fps)."""
+    session, renderer, _ = rendered
+    rng = np.random.default_rng(seed)
+    pairs = [renderer.render(f.q, f.delta_L_true_rad, rng).images for f in session.frames]
+    front = write_video(folder / "front.avi", [p[0] for p in pairs], fps=10.0)
+    side = write_video(folder / "side.avi", [p[1] for p in pairs], fps=10.0)
+    return pairs, front, side
+
+
 def test_video_files_through_segmentation_track_the_truth(rendered, tmp_path, controller):
     session, renderer, segmenter = rendered
-    rng = np.random.default_rng(5)
-    pairs = [renderer.render(f.q, f.delta_L_true_rad, rng).images for f in session.frames]
-    front = write_video(tmp_path / "front.avi", [p[0] for p in pairs], fps=10.0)
-    side = write_video(tmp_path / "side.avi", [p[1] for p in pairs], fps=10.0)
+    pairs, front, side = rendered_videos(rendered, tmp_path, 5)
     with VideoSource([str(front), str(side)]) as video:
         items = list(video)
     assert len(items) == len(pairs) and isinstance(items[0], ImageSet)
@@ -372,10 +379,7 @@ def test_video_files_with_the_views_side_by_side_give_the_same_estimates(
 
     session, renderer, _ = rendered
     scene = session.scene
-    rng = np.random.default_rng(6)
-    pairs = [renderer.render(f.q, f.delta_L_true_rad, rng).images for f in session.frames]
-    front = write_video(tmp_path / "front.avi", [p[0] for p in pairs], fps=10.0)
-    side = write_video(tmp_path / "side.avi", [p[1] for p in pairs], fps=10.0)
+    pairs, front, side = rendered_videos(rendered, tmp_path, 6)
     args = (scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds)
     estimates = []
     for segmenter in (PairSegmenter(*args), ParallelPairSegmenter(*args)):

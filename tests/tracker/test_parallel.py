@@ -362,3 +362,16 @@ def test_the_user_is_told_whether_the_views_were_segmented_side_by_side(setup):
             " work: 2 times)"
         )
     assert segmenter.describe() == "no (closed)"
+
+
+def test_a_due_move_waits_for_settle_not_for_the_priming(setup):
+    """The loop rehearses just before a frame is due: a move (about 10 ms) then would hold the
+    frame up, so it waits for settle(), after the estimate has left."""
+    pairs = setup[3]
+    with make(setup, ParallelPairSegmenter) as segmenter:
+        segmenter.segment(pairs[0], settle=False)
+        segmenter._move_here = True
+        segmenter.rehearse(pairs[0])
+        assert not segmenter.here and segmenter.moves == 0
+        segmenter.settle()
+        assert segmenter.here and segmenter.moves == 1

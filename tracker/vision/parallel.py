@@ -27,6 +27,7 @@ process on its processor) hands its views over between frames, and takes them ba
 from __future__ import annotations
 
 import collections
+import contextlib
 import multiprocessing
 import os
 import pickle
@@ -41,7 +42,6 @@ import numpy as np
 
 from models.catheter import Catheter
 from models.imaging import Rig
-from tracker.types import Frame
 from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 
@@ -307,11 +307,10 @@ class ParallelPairSegmenter:
                 now = time.monotonic()
                 if now < spin_until:
                     continue
-                try:
+                # A worker that has gone ends the pipe: told below, by its exit code.
+                with contextlib.suppress(EOFError, OSError):
                     if self._bell.poll(min(max(started + timeout_s - now, 0.0), 0.1)):
                         self._drain()
-                except (EOFError, OSError):
-                    pass  # it has gone: told below
                 code = self._process.exitcode
                 if code is not None and control[_ANSWER] != seq:
                     raise WorkerStopped(f"it ended with exit code {code}")
@@ -428,13 +427,16 @@ class ParallelPairSegmenter:
         self.local.settle()
         self._between_frames()
 
-    def _between_frames(self) -> None:
-        """Read the wake-up signals not waited for; move the views here or back if due."""
+    def _between_frames(self, move: bool = True) -> None:
+        """Read the wake-up signals not waited for; with ``move``, move the views here or
+        back if due."""
         if not self.parallel:
             return
         try:
             if self._bells:
                 self._drain()
+            if not move:
+                return
             if self._move_here:
                 self._take_views()
             elif self.here and time.monotonic() - self._here_since > self._retry_s:
@@ -489,7 +491,8 @@ class ParallelPairSegmenter:
             self.local.rehearse(images, predicted_px)
             return
         images, predicted_px = self._checked(images, predicted_px)
-        self.settle()
+        self.local.settle()
+        self._between_frames(move=False)  # a move waits for settle: this is the priming
         self._request(_REHEARSE, self._write(images, True), predicted_px)
         self.local.cameras[0].rehearse(images[0], predicted_px[0])
 
@@ -521,16 +524,7 @@ class ParallelPairSegmenter:
         """The registered base projected into each camera, px."""
         return self.local.base_px
 
-    def frame(
-        self,
-        time_s: float,
-        q: Array,
-        images: Sequence[Array],
-        q_dot: Array | None = None,
-        delta_L_true_rad: float | None = None,
-    ) -> Frame:
-        """Segment a frame's images and return the pipeline Frame (images attached)."""
-        return self.segment(images).frame(time_s, q, q_dot, images, delta_L_true_rad)
+    frame = PairSegmenter.frame  # segments with this one's segment()
 
 
 def pair_segmenter(
@@ -590,10 +584,10 @@ def _shut(process, bell, shared, memory, wait_s: float = 2.0) -> None:
         if shared is not None and process is not None and process.is_alive():
             shared.control[_KIND] = _STOP
             shared.control[_REQUEST] += 1
-        try:
-            bell.send_bytes(b"")  # or the end of the pipe: either stops it
-        except (OSError, ValueError):
-            pass
+        # The wake-up, or the end of the pipe below: either stops it (a pipe that is already
+        # broken, a worker that died, needs neither).
+        with contextlib.suppress(OSError, ValueError):
+            bell.send_bytes(b"")
         bell.close()
     if process is not None and process.pid is not None:
         process.join(wait_s)
@@ -632,15 +626,16 @@ def _serve(
     memory = shared_memory.SharedMemory(memory_name)
     shared = _Shared(memory, shapes)
     try:
-        try:
-            pair = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
-        except Exception as exc:  # noqa: BLE001 (told to the caller, which goes on without)
-            _answer_with(shared, 0, ("error", WorkerStopped(f"{type(exc).__name__}: {exc}")))
-            wake.send_bytes(b"")
-            return
-        _work(wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s)
-    except (EOFError, OSError):
-        pass  # the caller has gone
+        # The end of the pipe: the caller has gone, and with it anyone to tell.
+        with contextlib.suppress(EOFError, OSError):
+            try:
+                pair = PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
+            except Exception as exc:  # noqa: BLE001 (told to the caller, which goes on)
+                error = WorkerStopped(f"{type(exc).__name__}: {exc}")
+                _answer_with(shared, 0, ("error", error))
+                wake.send_bytes(b"")
+                return
+            _work(wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s)
     finally:
         shared.release()
         memory.close()
@@ -685,11 +680,11 @@ def _work(wake, shared, cameras, segmenter, poll_s: float) -> None:
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()
         elif kind == _REHEARSE:
-            try:
+            # A rehearsal changes nothing; what is wrong with its images, the frame's own
+            # segmentation reports.
+            with contextlib.suppress(Exception):
                 for k, camera in enumerate(cameras):
                     camera.rehearse(shared.slots[k][slot], _taken_points(shared, k))
-            except Exception:  # noqa: BLE001, S110 (a rehearsal changes nothing; the
-                pass  # frame's segmentation reports what is wrong)
             spin_until = time.monotonic() + poll_s
         elif kind == _RESET:
             for camera in cameras:
