@@ -86,6 +86,9 @@ class DemoSettings:
     segmentation_worker : bool
         The views after the first segmented in a worker process, at the same time as the
         first (:mod:`tracker.vision.parallel`; with two processors or more).
+    collect_between_frames : bool
+        Python's garbage collection run between frames only
+        (:class:`tracker.live.collection.FrameCollection`).
     """
 
     seconds: float = 15.0
@@ -102,6 +105,7 @@ class DemoSettings:
     image_nuisance: ImagingNuisance = ImagingNuisance()
     keep_awake: bool = True
     segmentation_worker: bool = True
+    collect_between_frames: bool = True
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -420,6 +424,8 @@ def report_lines(
         lines.append(
             f"| views segmented side by side (a worker process) | {summary.segmentation_worker} |"
         )
+    if summary.garbage_collection is not None:
+        lines.append(f"| garbage collected between frames | {summary.garbage_collection} |")
     if rrd_path is not None:
         size = rrd_path.stat().st_size / 1e6 if rrd_path.exists() else math.nan
         lines.append(f"| rerun recording | {rrd_path} ({size:.1f} MB) |")
@@ -502,6 +508,7 @@ def run_demo(
             application_id="cathtrack-demo",
             keep_serving=True,
             keep_awake=settings.keep_awake,
+            collect_between_frames=settings.collect_between_frames,
         )
         with LiveSession(
             live_settings,

@@ -2,8 +2,8 @@
 
     source -> (segmentation, for images) -> Reconstructor -> estimator -> sinks
 
-The same :class:`~tracker.reconstruction.Reconstructor` and estimators as replay; only the source
-(cameras, UDP markers, a paced simulation or recording) and the sinks (UDP estimates,
+The same :class:`~tracker.reconstruction.Reconstructor` and estimators as replay; only the
+source (cameras, UDP markers, a paced simulation or recording) and the sinks (UDP estimates,
 OpenIGTLink, rerun, recordings, CSV) differ. Joint values come from a
 :class:`~tracker.io.udp.JointReceiver`, interpolated to each image time stamp.
 
@@ -11,10 +11,10 @@ Real time (docs/live.md, "Real time"): the loop's own thread does only what the 
 waits for: segmentation (in a region around the catheter predicted for this frame once the
 last estimate was sent), joint values at the image time, reconstruction, the estimator and
 the sinks given to it (the estimate datagram); every other output runs behind a
-:class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source
-(cameras) is captured in its own thread and the loop always takes the newest frame
+:class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source (cameras) is captured
+in its own thread and the loop always takes the newest frame
 (:class:`~tracker.live.sources.NewestOnly`): the older ones are dropped and counted, never
-processed late.
+processed late. Python's garbage collection runs between frames.
 
 Faults, each counted in the :class:`LiveSummary`:
 
@@ -29,8 +29,7 @@ Faults, each counted in the :class:`LiveSummary`:
   with fresh markers) and the estimate sent is not valid (NaN, valid bit clear);
 - a frame that cannot be segmented or reconstructed is dropped and reported once per cause;
 - an estimator error gives an invalid estimate (NaN) for that frame, reported once;
-- a sink (:mod:`tracker.live.sinks`) that raises is reported once and disabled; the loop
-  goes on;
+- a sink (:mod:`tracker.live.sinks`) that raises is reported once and disabled; the loop goes on;
 - Ctrl-C (SIGINT) or SIGTERM ends the loop after the current frame; a second Ctrl-C
   interrupts at once. Every sink is closed (recordings finalised) and sockets released in
   all cases, and :meth:`LiveTracker.run` returns the summary.
@@ -54,6 +53,7 @@ from tracker.io.datagrams import SegmentedMarkers
 from tracker.io.joints import JointStatus
 from tracker.io.udp import JointReceiver
 from tracker.live.affinity import LoopAffinity
+from tracker.live.collection import FrameCollection
 from tracker.live.pacing import FramePace, PrimeTiming
 from tracker.live.signals import StopRequest
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
@@ -177,6 +177,8 @@ class LiveTracker:
         During :meth:`run`, keep the processors out of their deep sleep states, which lose
         the caches between frames (:class:`~tracker.live.wake.WakeLatency`; Linux, needs
         write access to ``/dev/cpu_dma_latency``, said once when missing).
+    collect_between_frames : bool
+        During :meth:`run`, collect garbage between frames only (:mod:`tracker.live.collection`).
     """
 
     def __init__(
@@ -197,6 +199,7 @@ class LiveTracker:
         rehearse: bool = True,
         pin: bool = True,
         keep_awake: bool = False,
+        collect_between_frames: bool = True,
     ) -> None:
         self.reconstructor = reconstructor
         self.estimator = estimator
@@ -213,6 +216,7 @@ class LiveTracker:
         self._settles = callable(getattr(segmenter, "settle", None))
         self.affinity = LoopAffinity() if pin else None
         self.wake = WakeLatency(report=report) if keep_awake else None
+        self.collection = FrameCollection(enabled=collect_between_frames)
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
         self.priming = PrimeTiming()  # how long priming takes, the rehearsal included
         self._last_images = None  # the last frame's images, for the rehearsal
@@ -258,11 +262,8 @@ class LiveTracker:
         if isinstance(sink, QueuedSink):
             sink.idle = self.idle
         entry = _SinkEntry(sink, _sink_name(sink))
-        index = next((k for k, e in enumerate(self._sinks) if e.sink is before), None)
-        if before is not None and index is not None:
-            self._sinks.insert(index, entry)
-        else:
-            self._sinks.append(entry)
+        at = [k for k, e in enumerate(self._sinks) if e.sink is before]  # (no sink is None)
+        self._sinks.insert(at[0] if at else len(self._sinks), entry)
 
     def _report_once(self, key: str, message: str) -> None:
         if key not in self._reported:
@@ -660,6 +661,7 @@ class LiveTracker:
                 self.affinity.apply(() if capture is None else (capture.thread_id,))
             if self.wake is not None:
                 self.summary.kept_awake = self.wake.hold()
+            self.collection.hold()
             if self._capture is not None:
                 poll_s = self._capture.poll_s
                 entries = self._capture.items(lambda: self.wait_s(self.monotonic(), poll_s))
@@ -681,6 +683,8 @@ class LiveTracker:
                 if entry is None:
                     if not self.prime(now) and self.joints is not None:
                         self.joints.poll()
+                    if not self._primed:
+                        self.collection.collect()  # none due in most waits
                     if self.affinity is not None and now - swept_s > 1.0 and not self._primed:
                         swept_s = now
                         self.affinity.sweep()  # threads the loop's thread started
@@ -694,6 +698,7 @@ class LiveTracker:
                     break
                 self._superseded()
                 self.step(*entry)
+                self.collection.collect()  # the estimate has left: the time to spare
         except KeyboardInterrupt:
             reason = "interrupted"
         finally:
@@ -705,6 +710,8 @@ class LiveTracker:
                 self.affinity.restore()
             if self.wake is not None:
                 self.wake.release()
+            self.collection.release()
+            self.summary.garbage_collection = self.collection.describe()
             self.summary.stop_reason = reason
             self.summary.duration_s = self.monotonic() - started
             try:

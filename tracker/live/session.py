@@ -97,6 +97,9 @@ class SessionSettings:
     keep_awake : bool
         The processors kept out of their deep sleep states during the run
         (:class:`tracker.live.wake.WakeLatency`).
+    collect_between_frames : bool
+        Python's garbage collection run between frames, never within one
+        (:class:`tracker.live.collection.FrameCollection`).
     """
 
     estimator: str = "ukf"
@@ -119,6 +122,7 @@ class SessionSettings:
     record_queue: int = 512
     pin: bool = True
     keep_awake: bool = True
+    collect_between_frames: bool = True
 
     def __post_init__(self) -> None:
         if self.image_every < 1:
@@ -330,6 +334,7 @@ class LiveSession:
                 report=report,
                 pin=settings.pin,
                 keep_awake=settings.keep_awake,
+                collect_between_frames=settings.collect_between_frames,
             )
             if viewer_sink is not None:
                 viewer_sink.summary = self.tracker.summary

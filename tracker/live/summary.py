@@ -86,6 +86,8 @@ class LiveSummary:
     # Whether the views after the first were segmented in a worker process, at the same time
     # ("yes", or "no (why)"; tracker.vision.parallel); None: no images segmented in parallel.
     segmentation_worker: str | None = None
+    # The garbage collections run between frames (FrameCollection.describe()).
+    garbage_collection: str | None = None
     duration_s: float = 0.0
     stop_reason: str = ""
 
@@ -170,6 +172,8 @@ class LiveSummary:
             )
         if self.segmentation_worker is not None:
             out.append(f"  views segmented side by side: {self.segmentation_worker}")
+        if self.garbage_collection is not None:
+            out.append(f"  garbage collected between frames: {self.garbage_collection}")
         for name in sorted(set(self.sink_dropped) | set(self.sink_stalls)):
             dropped, stalls = self.sink_dropped.get(name, 0), self.sink_stalls.get(name, 0)
             if dropped or stalls:

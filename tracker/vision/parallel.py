@@ -42,6 +42,7 @@ import numpy as np
 
 from models.catheter import Catheter
 from models.imaging import Rig
+from tracker.live.collection import FrameCollection
 from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 
@@ -635,14 +636,19 @@ def _serve(
                 _answer_with(shared, 0, ("error", error))
                 wake.send_bytes(b"")
                 return
-            _work(wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s)
+            with FrameCollection() as collection:
+                _work(
+                    wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s,
+                    collection,
+                )
     finally:
         shared.release()
         memory.close()
 
 
-def _work(wake, shared, cameras, segmenter, poll_s: float) -> None:
-    """Answer the caller's requests (see :func:`_serve`) until it says stop."""
+def _work(wake, shared, cameras, segmenter, poll_s: float, collection) -> None:
+    """Answer the caller's requests (see :func:`_serve`) until it says stop; garbage is
+    collected after an answer (:class:`~tracker.live.collection.FrameCollection`)."""
     control = shared.control
     seen = int(control[_REQUEST])  # none is sent before this answer: ready
     payload: list[bytes] = []
@@ -679,6 +685,7 @@ def _work(wake, shared, cameras, segmenter, poll_s: float) -> None:
             wake.send_bytes(b"")
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()
+            collection.collect()  # and the garbage collection due, as in the loop
         elif kind == _REHEARSE:
             # A rehearsal changes nothing; what is wrong with its images, the frame's own
             # segmentation reports.
