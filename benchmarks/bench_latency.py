@@ -231,6 +231,7 @@ def live_row(result: DemoResult) -> dict[str, float]:
         "age_p50": s.age_ms["p50"],
         "thirds": s.latency_thirds_ms,
         "stages": s.stage_ms,
+        "collected": s.garbage_collection,
     }
 
 
@@ -308,6 +309,7 @@ def report_live(label: str, r: dict, quiet: dict | None, loaded: bool, factor: f
         f"{name} {ms['p50']:.2f} / {ms['p99']:.2f}" for name, ms in r["stages"].items()
     )
     print(f"    {'':>18}  the live loop's time per stage, p50 / p99 (ms): {stages}")
+    print(f"    {'':>18}  garbage collected between frames: {r['collected']}")
     first, middle, last = r["thirds"]
     print(
         f"    {'':>18}  latency p50 in each third of the session: {first:.2f} / {middle:.2f} /"
