@@ -119,5 +119,5 @@ class FrameCollection:
         young, middle, full = self.collections
         return (
             f"{n} ({young} / {middle} / {full} by generation), p50 {ms['p50']:.2f} ms,"
-            f" max {ms['max']:.1f} ms"
+            f" max {ms['max']:.2f} ms"
         )
