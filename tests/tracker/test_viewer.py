@@ -9,6 +9,7 @@ import argparse
 import dataclasses
 import math
 import socket
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -266,6 +267,62 @@ def test_live_viewer_sink_logs_the_loop_and_close_completes_the_rrd(session, tmp
     ):
         assert rows.get(entity, 0) >= 19, entity  # every frame (+ a static style row)
     assert viewer.close()  # closing again does nothing
+
+
+class _CountingStream:
+    """A rerun stream's flush, counted (the rest of the stream is the real one's)."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.flushes: list[float] = []
+
+    def flush(self, *, timeout_sec: float = 1e38) -> None:
+        self.flushes.append(timeout_sec)
+        self.stream.flush(timeout_sec=timeout_sec)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
+@pytest.mark.parametrize("every_s, expected", [(0.0, 20), (3600.0, 1)])
+def test_the_live_viewer_sink_flushes_after_its_frames_without_waiting(
+    session, tmp_path, every_s, expected
+):
+    scene = session.scene
+    viewer = RerunSink(file_stream(tmp_path / "live.rrd"))
+    counting = viewer.stream = _CountingStream(viewer.stream)
+    sink = LiveViewerSink(viewer, scene, "ukf", flush_every_s=every_s)
+    for frame in session.frames:
+        sink.handle(frame, None, _estimate(frame.time_s), 0.002)
+    assert counting.flushes == [0.0] * expected  # started, never waited for
+    sink.close()
+    RrdReader(tmp_path / "live.rrd").store()
+
+
+def _estimate(time_s: float) -> Estimate:
+    return Estimate(time_s=time_s, delta_L_rad=0.3, std_rad=0.05, q_r_rad=0.0, flags=Flag(0))
+
+
+def test_a_long_flush_tick_leaves_the_flushes_to_the_caller(tmp_path):
+    """With ``flush_tick_s`` the stream does not flush on its own clock (rerun's 0.2 s for a
+    file): what is logged reaches the file when flushed, not before."""
+    sizes = {}
+    for tick in (None, 3600.0):
+        path = tmp_path / f"tick-{tick}.rrd"
+        output = open_rerun_output(rerun_args(["--save", str(path)]), flush_tick_s=tick)
+        output.stream.flush()
+        before = path.stat().st_size
+        noise = np.random.default_rng(0).integers(0, 256, (256, 256), np.uint8)
+        output.stream.log("image", rr.Image(noise))
+        time.sleep(1.0)  # five of rerun's own ticks
+        sizes[tick] = path.stat().st_size - before
+        output.stream.flush()
+        flushed = path.stat().st_size - before
+        RerunSink(output.stream).close()
+        assert flushed > 60_000  # the image, once flushed
+        sizes[tick] = (sizes[tick], flushed)
+    assert sizes[None][0] > 60_000  # rerun's own tick wrote it
+    assert sizes[3600.0][0] < 1_000  # nothing until the flush
 
 
 @pytest.fixture(scope="module")

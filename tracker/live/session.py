@@ -41,6 +41,11 @@ from tracker.viewer.sink import LiveViewerSink, RerunSink
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.parallel import ParallelPairSegmenter
 
+LONG_FLUSH_TICK_S = 3600.0
+"""The rerun stream's own flush period in a live session, s: never, in effect; the viewer
+sink flushes once a frame's estimate has left (:class:`LiveViewerSink`), and rerun when
+2 MiB have piled up, which happens while the sink logs."""
+
 
 def _report_stderr(message: str) -> None:
     print(f"cathtrack: {message}", file=sys.stderr, flush=True)
@@ -258,8 +263,10 @@ class LiveSession:
                     start_time_ns=time.time_ns(),
                     bind=settings.bind,
                     report=report,
+                    flush_tick_s=LONG_FLUSH_TICK_S,  # the viewer sink flushes (LiveViewerSink)
                 )
             if self.output is not None:
+                watched_live = bool(self.output.viewer_url or self.output.served_url)
                 self.viewer = RerunSink(
                     self.output.stream,
                     primary=settings.estimator,
@@ -277,6 +284,7 @@ class LiveSession:
                     watch=self.output.watch(),
                     report=report,
                     close_stream=not (settings.keep_serving and self.output.served_url),
+                    flush_every_s=0.0 if watched_live else 0.2,  # a file: rerun's chunks
                 )
                 stack.callback(viewer_sink.close)  # stops the viewer watch too
                 sinks.append(

@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from urllib.parse import quote, urlsplit
 
@@ -322,6 +323,7 @@ def open_rerun_output(
     start_time_ns: int | None = None,
     bind: str = LOOPBACK,
     report: Callable[[str], None] = _report_stderr,
+    flush_tick_s: float | None = None,
 ) -> RerunOutput | None:
     """Open the rerun outputs the flags of :func:`add_rerun_args` ask for (None: none).
 
@@ -338,6 +340,10 @@ def open_rerun_output(
         Shown by the viewer instead of ``<unknown>``.
     start_time_ns : int, optional
         Wall-clock start of the session (ns since the Unix epoch), shown with the recording.
+    flush_tick_s : float, optional
+        The period of the stream's own flushes, s (rerun's default, 0.2 s for a file and
+        8 ms for a viewer, when None). A caller that flushes the stream itself when it has
+        time to spare (the live loop's viewer sink) sets a long one.
 
     Raises
     ------
@@ -396,7 +402,10 @@ def open_rerun_output(
             output["web_viewer"] = web_viewer
     if not sinks:
         return None
-    stream = rr.RecordingStream(application_id, recording_id=recording_id)
+    batcher = None
+    if flush_tick_s is not None:
+        batcher = rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=float(flush_tick_s)))
+    stream = rr.RecordingStream(application_id, recording_id=recording_id, batcher_config=batcher)
     stream.set_sinks(*sinks, default_blueprint=blueprint)
     describe_recording(stream, recording_name, start_time_ns)
     return RerunOutput(stream, targets, **output)
