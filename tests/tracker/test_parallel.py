@@ -124,38 +124,6 @@ def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("here", [False, True])
-def test_meanwhile_runs_once_after_the_own_view_and_an_error_there_loses_no_answer(
-    setup, here
-):
-    """What the caller does while the worker finishes (the loop: the joints) runs once a
-    frame, with the worker's views in flight; when it raises, the error reaches the caller,
-    the worker's answer is still taken, and the next frames are those of one process."""
-    pairs = setup[3]
-    reference = make(setup, PairSegmenter)
-    calls = []
-
-    def boom():
-        raise RuntimeError("boom")
-
-    with make(setup, ParallelPairSegmenter) as worked:
-        if here:  # the views moved to this process (a worker held up): after every view
-            worked._move_here = True
-            worked.settle()
-            assert worked.here
-        expected, got = [], []
-        for k, images in enumerate(pairs[:6]):
-            expected.append(reference.segment(images))
-            if k == 2:
-                with pytest.raises(RuntimeError, match="boom"):
-                    worked.segment(images, meanwhile=boom)
-                continue
-            got.append(worked.segment(images, meanwhile=lambda k=k: calls.append(k)))
-        assert worked.parallel and worked.here is here, worked.worker_failure
-    assert calls == [0, 1, 3, 4, 5]
-    assert_same_results(expected[:2] + expected[3:], got)
-
-
 def test_a_worker_that_dies_is_reported_once_and_its_views_are_segmented_here(setup):
     pairs = setup[3]
     lines = []

@@ -56,21 +56,12 @@ from tracker.live.affinity import LoopAffinity
 from tracker.live.collection import FrameCollection
 from tracker.live.pacing import FramePace, PrimeTiming
 from tracker.live.signals import StopRequest
-from tracker.live.sinks import (
-    INVALID,
-    JOINT_STATUS,
-    PREDICT_ONLY,
-    LiveResult,
-    LiveStatus,
-    QueuedSink,
-    Sink,
-)
+from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
 from tracker.live.summary import LatencyRecorder, LiveSummary
 from tracker.live.wake import WakeLatency
 from tracker.reconstruction import Reconstructor
 from tracker.types import Estimate, Flag, Frame, Observation
-from tracker.vision.parallel import ParallelPairSegmenter
 
 Array = np.ndarray
 
@@ -105,10 +96,25 @@ class _SinkEntry:
     enabled: bool = True
 
 
-def _arrivals(source: Iterable, clock: Callable[[], float]) -> Iterator[tuple | None]:
+def _sink_name(sink: object) -> str:
+    return str(getattr(sink, "name", type(sink).__name__))
+
+
+def _arrivals(
+    source: Iterable, clock: Callable[[], float]
+) -> Iterator[tuple[object, float] | None]:
     """(item, the time it left the source) of every item; ``None`` as it comes."""
     for item in source:
         yield None if item is None else (item, clock())
+
+
+_JOINT_STATUS = {
+    JointStatus.OK: LiveStatus.NONE,
+    JointStatus.HELD: LiveStatus.NONE,  # up to the loop's hold; past it, extrapolated
+    JointStatus.CLAMPED: LiveStatus.JOINTS_CLAMPED,
+    JointStatus.STALE: LiveStatus.STALE_JOINTS,
+    JointStatus.NONE: LiveStatus.NO_JOINTS,
+}
 
 
 # ------------------------------------------------------------------------------------ loop
@@ -135,9 +141,9 @@ class LiveTracker:
         view, px) is where the last estimate puts the catheter at this frame's time: the
         segmenter searches around it first. It is predicted off the critical path, once the
         last frame's estimate was sent and again when the frame is due (:meth:`prime`).
-        One with ``settle()`` is called with ``settle=False`` and settled once the estimate
-        has left (background updates off the critical path); a ``ParallelPairSegmenter``
-        gets the joints sampled while its worker finishes (``meanwhile``).
+        A segmenter with ``settle()`` is called ``segment(images, predicted_px,
+        settle=False)`` and settled once the estimate has left: the update of its
+        background models is off the critical path.
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -255,7 +261,7 @@ class LiveTracker:
         """
         if isinstance(sink, QueuedSink):
             sink.idle = self.idle
-        entry = _SinkEntry(sink, str(getattr(sink, "name", type(sink).__name__)))
+        entry = _SinkEntry(sink, _sink_name(sink))
         at = [k for k, e in enumerate(self._sinks) if e.sink is before]  # (no sink is None)
         self._sinks.insert(at[0] if at else len(self._sinks), entry)
 
@@ -331,7 +337,7 @@ class LiveTracker:
             return np.zeros(3), None, LiveStatus.NO_JOINTS
         self.joints.poll()
         sample = self.joints.sample(time_s)
-        status = JOINT_STATUS[sample.status]
+        status = _JOINT_STATUS[sample.status]
         if sample.status is JointStatus.HELD and sample.age_s > self.max_hold_s:
             status = LiveStatus.JOINTS_EXTRAPOLATED
         q = sample.q if np.all(np.isfinite(sample.q)) else np.zeros(3)
@@ -446,15 +452,10 @@ class LiveTracker:
             0.8 * self._rehearsal_s + 0.2 * took
         )
 
-    def _segment(self, time_s: float, images, joints: list) -> SegmentedMarkers:
+    def _segment(self, time_s: float, images) -> SegmentedMarkers:
         self._last_images = images
         predicted = self._region_for(time_s)
-        if isinstance(self.segmenter, ParallelPairSegmenter):  # joints while its worker works
-            seg = self.segmenter.segment(
-                images, predicted, settle=False,
-                meanwhile=lambda: joints.append(self._joints_at(time_s, None)),
-            )  # fmt: skip
-        elif self._settles:
+        if self._settles:
             seg = self.segmenter.segment(images, predicted, settle=False)
         elif predicted is None:
             seg = self.segmenter.segment(images)
@@ -497,14 +498,12 @@ class LiveTracker:
         frame = item if isinstance(item, Frame) else None
         try:
             # Segmentation first: it needs no joint values (its region was predicted after
-            # the last frame), and the joints received meanwhile are drained with the rest
-            # (while the segmentation worker finishes, with one: ``joints``).
-            joints: list = []
-            markers = self._segment(time_s, item[1], joints) if is_images else item
+            # the last frame), and the joints received meanwhile are drained with the rest.
+            markers = self._segment(time_s, item[1]) if is_images else item
             segmented_s = self.monotonic()
             if is_images:
                 self.stages["segmentation"].add(segmented_s - now)
-            q, q_dot, status = joints[0] if joints else self._joints_at(time_s, frame)
+            q, q_dot, status = self._joints_at(time_s, frame)
             if frame is None:
                 frame = markers.frame(q, q_dot)
                 if is_images:

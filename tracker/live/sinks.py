@@ -36,7 +36,6 @@ from typing import Protocol
 
 import numpy as np
 
-from tracker.io.joints import JointStatus
 from tracker.io.recording import RecordingWriter
 from tracker.io.udp import JointReceiver
 from tracker.types import Estimate, Frame, Observation
@@ -66,15 +65,6 @@ sent is not valid (NaN, valid bit clear)."""
 
 INVALID = PREDICT_ONLY | LiveStatus.ESTIMATOR_ERROR
 """Frames whose estimate is not valid whatever the estimator returned."""
-
-JOINT_STATUS = {
-    JointStatus.OK: LiveStatus.NONE,
-    JointStatus.HELD: LiveStatus.NONE,  # up to the loop's hold; past it, extrapolated
-    JointStatus.CLAMPED: LiveStatus.JOINTS_CLAMPED,
-    JointStatus.STALE: LiveStatus.STALE_JOINTS,
-    JointStatus.NONE: LiveStatus.NO_JOINTS,
-}
-"""A frame's status from its joint sample's."""
 
 
 class Sink(Protocol):

@@ -375,17 +375,12 @@ class ParallelPairSegmenter:
         predicted_px: Sequence[Array | None] | None = None,
         *,
         settle: bool = True,
-        meanwhile: Callable[[], object] | None = None,
     ) -> PairSegmentation:
-        """Segment one synchronised frame (:meth:`PairSegmenter.segment`); ``meanwhile`` is
-        called once the caller's own view is done, while the worker finishes the others
-        (after every view when they are all segmented here)."""
+        """Segment one synchronised frame (:meth:`PairSegmenter.segment`)."""
         self.frames += 1
         if not self.parallel or self.here:
             self.frames_here += self.here
             pair = self.local.segment(images, predicted_px, settle=settle)
-            if meanwhile is not None:
-                meanwhile()
             if settle and self.here:
                 self._between_frames()
             return pair
@@ -400,8 +395,6 @@ class ParallelPairSegmenter:
             first = camera.in_camera_frame(
                 camera.segment(images[0], predicted_px[0], settle=settle)
             )
-            if meanwhile is not None:
-                meanwhile()
         finally:
             own_s = time.monotonic()
             others = self._others(sent, images, predicted_px, settle)
