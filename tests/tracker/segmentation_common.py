@@ -1,6 +1,9 @@
-"""What the segmentation tests (``test_segmentation.py``, ``test_segmentation_kernels.py``)
-share: the catheter's base, a rendered scene (catheter, rig, renderer) and a bent
-configuration."""
+"""What the segmentation tests (``test_segmentation.py``, ``test_segmentation_kernels.py``,
+``test_parallel.py``, ``test_view_record.py``) share: the catheter's base, a rendered scene
+(catheter, rig, renderer), a bent configuration, and the comparison of two views' results
+field by field."""
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -20,3 +23,33 @@ def scene():
 
 
 Q_BENT = np.array([0.8, 0.7, 0.5])
+
+
+def view_fields(view) -> list:
+    """Every field of a ViewSegmentation (the photometry's expanded), for comparison."""
+    out = []
+    for f in dataclasses.fields(view):
+        value = getattr(view, f.name)
+        if f.name == "photometry" and value is not None:
+            out += [getattr(value, g.name) for g in dataclasses.fields(value)]
+        else:
+            out.append(value)
+    return out
+
+
+def assert_same(a, b):
+    """The same type and value, bit for bit (NaNs included) for arrays."""
+    assert type(a) is type(b)
+    if isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert a.tobytes() == b.tobytes()
+    elif isinstance(a, float):
+        assert a == b or (np.isnan(a) and np.isnan(b))
+    else:
+        assert a == b
+
+
+def assert_same_views(a, b):
+    """Two ViewSegmentations equal in every field (:func:`assert_same`)."""
+    for x, y in zip(view_fields(a), view_fields(b), strict=True):
+        assert_same(x, y)

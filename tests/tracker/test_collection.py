@@ -57,9 +57,9 @@ def test_hold_turns_the_automatic_collection_off_and_release_puts_it_back():
 def test_a_process_without_automatic_collection_is_left_without_it():
     gc.disable()
     try:
-        with FrameCollection():
-            pass
-        assert not gc.isenabled()
+        with FrameCollection() as collection:
+            assert collection.held and gc.get_freeze_count() > 0
+        assert not gc.isenabled() and gc.get_freeze_count() == 0
     finally:
         gc.enable()
 

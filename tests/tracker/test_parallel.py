@@ -3,7 +3,6 @@ process, bit for bit, and a worker that fails never stops the caller."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 from multiprocessing import shared_memory
@@ -14,6 +13,7 @@ import pytest
 from models.catheter import default_catheter
 from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
 from replay.simulation.simulator import default_scene
+from tests.tracker.segmentation_common import assert_same, assert_same_views
 from tracker.vision import parallel
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.parallel import MAX_POINTS, ParallelPairSegmenter, pair_segmenter
@@ -56,29 +56,6 @@ def regions(setup, k):
     return (many, many + 3.0)
 
 
-def fields(view) -> list:
-    """Every field of a ViewSegmentation (the photometry's expanded), for comparison."""
-    out = []
-    for f in dataclasses.fields(view):
-        value = getattr(view, f.name)
-        if f.name == "photometry" and value is not None:
-            out += [getattr(value, g.name) for g in dataclasses.fields(value)]
-        else:
-            out.append(value)
-    return out
-
-
-def assert_same(a, b):
-    assert type(a) is type(b)
-    if isinstance(a, np.ndarray):
-        assert a.dtype == b.dtype and a.shape == b.shape
-        np.testing.assert_array_equal(a, b)
-    elif isinstance(a, float):
-        assert a == b or (np.isnan(a) and np.isnan(b))
-    else:
-        assert a == b
-
-
 def run_frames(segmenter, setup, rehearse=True, before_settle=None):
     """Segment the pairs as the live loop does; each result's comparable parts."""
     pairs = setup[3]
@@ -102,8 +79,7 @@ def assert_same_results(expected, got):
             assert_same(x, y)
         assert a.tip_refined == b.tip_refined
         for va, vb in zip(a.views, b.views, strict=True):
-            for x, y in zip(fields(va), fields(vb), strict=True):
-                assert_same(x, y)
+            assert_same_views(va, vb)
 
 
 def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):

@@ -12,6 +12,7 @@ import pytest
 from models.catheter import default_catheter
 from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
 from replay.simulation.simulator import default_scene
+from tests.tracker.segmentation_common import assert_same_views
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.segmentation import SegmentationFlag
 from tracker.vision.view_record import read_views, view_size, write_views
@@ -49,29 +50,6 @@ def views():
     return [*out, empty, dataclasses.replace(found, photometry=None), first_order, many]
 
 
-def fields(view) -> list:
-    out = []
-    for f in dataclasses.fields(view):
-        value = getattr(view, f.name)
-        if f.name == "photometry" and value is not None:
-            out += [getattr(value, g.name) for g in dataclasses.fields(value)]
-        else:
-            out.append(value)
-    return out
-
-
-def assert_same(a, b):
-    for x, y in zip(fields(a), fields(b), strict=True):
-        assert type(x) is type(y)
-        if isinstance(x, np.ndarray):
-            assert x.dtype == y.dtype and x.shape == y.shape
-            assert x.tobytes() == y.tobytes()  # bit for bit, NaNs included
-        elif isinstance(x, float):
-            assert x == y or (np.isnan(x) and np.isnan(y))
-        else:
-            assert x == y
-
-
 def test_every_field_comes_back_the_same(views):
     assert views[4].centreline_px.shape[0] == 0 and views[5].photometry is None
     block = np.full(1 << 16, np.nan)
@@ -82,10 +60,10 @@ def test_every_field_comes_back_the_same(views):
     )
     back = read_views(block, len(views))
     for a, b in zip(views, back, strict=True):
-        assert_same(a, b)
+        assert_same_views(a, b)
     block[:] = 0.0  # the views read are copies: the block may be written again
     for a, b in zip(views, back, strict=True):
-        assert_same(a, b)
+        assert_same_views(a, b)
 
 
 def test_a_block_too_small_is_said(views):

@@ -37,7 +37,7 @@ from tracker.live.sinks import CsvSink, QueuedSink, RecordingSink, Sink
 from tracker.reconstruction import Reconstructor
 from tracker.viewer.layout import default_blueprint
 from tracker.viewer.output import RerunOutput, open_rerun_output
-from tracker.viewer.sink import LiveViewerSink, RerunSink
+from tracker.viewer.sink import FILE_FLUSH_EVERY_S, LiveViewerSink, RerunSink
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.parallel import ParallelPairSegmenter
 
@@ -284,7 +284,7 @@ class LiveSession:
                     watch=self.output.watch(),
                     report=report,
                     close_stream=not (settings.keep_serving and self.output.served_url),
-                    flush_every_s=0.0 if watched_live else 0.2,  # a file: rerun's chunks
+                    flush_every_s=0.0 if watched_live else FILE_FLUSH_EVERY_S,
                 )
                 stack.callback(viewer_sink.close)  # stops the viewer watch too
                 sinks.append(

@@ -598,6 +598,11 @@ class RerunSink:
         return delivered
 
 
+FILE_FLUSH_EVERY_S = 0.2
+"""How often the live viewer sink flushes a stream written to a file, s: rerun's own period
+for files, whose chunks it keeps (:class:`LiveViewerSink`, ``flush_every_s``)."""
+
+
 class LiveViewerSink:
     """The rerun output as a live-loop sink (:mod:`tracker.live.sinks`).
 
@@ -658,7 +663,7 @@ class LiveViewerSink:
         watch: ViewerWatch | None = None,
         report: Callable[[str], None] = _report_stderr,
         close_stream: bool = True,
-        flush_every_s: float = 0.2,
+        flush_every_s: float = FILE_FLUSH_EVERY_S,
     ) -> None:
         if int(image_every) < 1:
             raise ValueError(f"image_every must be >= 1, got {image_every}")
