@@ -690,3 +690,53 @@ def test_a_noise_covariance_that_is_not_positive_definite_is_one_clear_error():
     frame = simulate(catheter, BENT, 0.0, np.random.default_rng(0))[0]
     with pytest.raises(ValueError, match="not positive definite"):
         BendingPlaneUKF(catheter).step(replace(frame, tip_cov_b=-frame.tip_cov_b))
+
+
+def test_a_frame_whose_3d_points_are_all_missing_is_fused_from_its_views():
+    """A frame of one view (the other missed the tip, so nothing triangulated): 3-D fields
+    of NaN rows go to the single-view update and count as partial, as absent fields do not;
+    one present 3-D point keeps the frame 3-D."""
+    from tracker.estimators.deviation import ShapeExpansion
+    from tracker.estimators.measurement import FrameGroups, ViewGroups
+    from tracker.estimators.ukf import observation_groups
+
+    catheter = default_catheter()
+    expansion = ShapeExpansion(catheter)
+    view = default_pinhole_rig().views[0]
+    q = np.array([0.3, 0.6, -0.4])
+    n = len(catheter.marker_arclengths_mm)
+    uv = view.project(catheter.points(q)[:2])
+    seen = ViewMeasurement(view, np.eye(3), np.zeros(3), uv, np.broadcast_to(np.eye(2), (2, 2, 2)),
+                           np.array([-1, 0]))
+    cov = 0.01 * np.eye(3)
+    missing = Observation(
+        time_s=0.0, q=q, q_dot=np.array([0.1, 0.2, 0.3]), tip_b_mm=np.full(3, np.nan), tip_cov_b=cov,
+        markers_b_mm=np.full((n, 3), np.nan), markers_cov_b=np.broadcast_to(cov, (n, 3, 3)),
+        velocity_b_mm_s=np.ones(3), velocity_cov_b=cov, views=(seen,),
+    )  # fmt: skip
+    cases = [
+        (missing, ViewGroups, True),
+        (replace(missing, tip_b_mm=None, markers_b_mm=None, velocity_b_mm_s=None), ViewGroups,
+         False),
+        (replace(missing, markers_b_mm=np.where((np.arange(n) == n - 1)[:, None], np.ones((n, 3)), np.nan)),
+         FrameGroups, True),
+        (replace(missing, tip_cov_b=np.full((3, 3), np.nan), tip_b_mm=np.ones(3)), ViewGroups,
+         True),
+        (replace(missing, views=()), FrameGroups, True),  # the velocity alone
+    ]  # fmt: skip
+    for observation, kind, partial in cases:
+        groups, is_partial = observation_groups(expansion, observation, q)
+        assert isinstance(groups, kind)
+        assert is_partial is partial
+    # The single-view frame's update, after a 3-D frame, is that of its views alone.
+    points = rotate_z(catheter.points(q), q[0] + 1.0)
+    first = Observation(time_s=0.0, q=q, tip_b_mm=points[0], tip_cov_b=cov,
+                        markers_b_mm=points[1:], markers_cov_b=np.broadcast_to(cov, (n, 3, 3)))
+    ukf, alone = (BendingPlaneUKF(catheter) for _ in range(2))
+    ukf.step(first), alone.step(first)
+    missing = replace(missing, time_s=0.05)
+    a = ukf.step(missing)
+    b = alone.step(replace(missing, tip_b_mm=None, markers_b_mm=None, velocity_b_mm_s=None))
+    assert np.isfinite(a.delta_L_rad) and a.std_rad < 0.5
+    assert a.delta_L_rad == b.delta_L_rad and a.std_rad == b.std_rad
+    assert Flag.PARTIAL in a.flags and Flag.PARTIAL not in b.flags

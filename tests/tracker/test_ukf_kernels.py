@@ -433,6 +433,85 @@ def test_the_expansion_carried_from_its_node_is_the_product_with_the_transport_m
     np.testing.assert_allclose(MK.carry_expansion(JK, p, d)[0], JK @ T, rtol=1e-14, atol=1e-15)
 
 
+def _rotation(rng):
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return Q * np.sign(np.linalg.det(Q))
+
+
+def _single_view_groups(rng, views, n_points=(2, 3)):
+    """ViewGroups of random model vectors in ``views``, each with its own base pose, and the
+    parts to project them by hand."""
+    from tracker.estimators.measurement import ViewGroups
+
+    parts = tuple(
+        (view, rng.normal(0.0, 10.0, (n, 3)), _rotation(rng), rng.normal(0.0, 5.0, 3))
+        for view, n in zip(views, n_points, strict=True)
+    )
+    G = sum(n_points)
+    groups = ViewGroups(
+        q=np.array([[0.4, 0.0, 0.0]]), z=np.zeros((1, G, 2)),
+        R=np.broadcast_to(np.eye(2), (1, G, 2, 2)).copy(), present=np.ones((1, G), bool),
+        parts=parts,
+    )  # fmt: skip
+    return groups, parts
+
+
+def _projected_by_hand(parts, angles):
+    """Each view's own ``project`` of ``R_w_b Rz(angle) C + o_b_w``: (..., G, 2)."""
+    out = []
+    for view, C, R_w_b, o_b_w in parts:
+        c, s = np.cos(angles)[..., None], np.sin(angles)[..., None]
+        turned = np.stack([c * C[:, 0] - s * C[:, 1], s * C[:, 0] + c * C[:, 1],
+                           np.broadcast_to(C[:, 2], c.shape[:-1] + (len(C),))], -1)
+        out.append(view.project(turned @ R_w_b.T + o_b_w))
+    return np.concatenate(out, axis=-2)
+
+
+def test_single_views_project_as_the_views_do_with_distortion_and_orthographic_planes():
+    """The compiled projection of single views' sigma points (ViewGroups.predict) against
+    the views' own project: OpenCV's projectPoints with its distortion, the orthographic
+    plane's axes, and a view of another kind (projected by its own method)."""
+    from models.imaging import OrthographicPlane, PinholeView
+
+    rng = np.random.default_rng(RNG_SEED)
+    distorted = PinholeView.look_at(
+        [400.0, 30.0, 20.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 1800.0,
+        dist=np.array([-0.21, 0.08, 0.0013, -0.0021, -0.015]),
+    )  # fmt: skip
+    plain = PinholeView.look_at([0.0, -380.0, 40.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 2500.0)
+    plane = OrthographicPlane.from_normal([0.3, 1.0, 0.2], 0.4)
+
+    class Other:  # a view of another kind: anything with project
+        def project(self, points_w):
+            return 2.0 * points_w[..., :2] + 1.0
+
+    sigmas = rng.normal(0.0, 1.0, (4, 7, 3))  # (r, S, n), the angle first
+    for views in ((distorted, plain), (plane, distorted), (plain, Other())):
+        groups, parts = _single_view_groups(rng, views)
+        assert (groups.cameras is None) == isinstance(views[1], Other)
+        predicted = groups.predict(np.zeros(4, np.intp), sigmas)
+        expected = _projected_by_hand(parts, groups.q[0, 0] + sigmas[..., 0])
+        assert predicted.shape == (4, 7, 5, 2)
+        np.testing.assert_allclose(predicted, expected, rtol=1e-11, atol=1e-9)
+
+
+def test_a_single_view_point_predicted_behind_its_camera_is_an_error():
+    from models.imaging import PinholeView
+    from tracker.estimators.measurement import ViewGroups
+
+    view = PinholeView.look_at([0.0, -100.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 1000.0)
+    # 150 mm along y_b, the base at the origin: 100 + 150 cos(angle) mm in front of the camera.
+    C = np.array([[0.0, 0.0, 0.0], [0.0, 150.0, 0.0]])
+    groups = ViewGroups(
+        q=np.zeros((1, 3)), z=np.zeros((1, 2, 2)), R=np.broadcast_to(np.eye(2), (1, 2, 2, 2)),
+        present=np.ones((1, 2), bool), parts=((view, C, np.eye(3), np.zeros(3)),),
+    )  # fmt: skip
+    in_front = np.linspace(-0.8, 0.8, 5)[:, None, None] * np.ones((1, 1, 3))
+    assert np.isfinite(groups.predict(np.zeros(5, np.intp), in_front)).all()
+    with pytest.raises(ValueError, match="behind a camera"):
+        groups.predict(np.zeros(5, np.intp), in_front + np.pi)
+
+
 _NO_COMPILE_SCRIPT = """
 import importlib, math, numba, numpy as np
 from dataclasses import replace

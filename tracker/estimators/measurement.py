@@ -61,8 +61,10 @@ import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
+from models.imaging import OrthographicPlane, PinholeView
 from tracker.estimators import measurement_kernels, ukf_kernels
 
 Array = np.ndarray
@@ -182,12 +184,56 @@ class FrameGroups:
         return replace(self, present=present)
 
 
+@lru_cache(maxsize=64)
+def _camera_constants(view) -> tuple[Array, Array, Array, Array, bool] | None:
+    """What :func:`measurement_kernels.view_projections` needs of a view: the rotation it
+    projects with (OpenCV's, of the camera's Rodrigues vector, for a pinhole camera; the
+    plane's axes as rows for an orthographic plane), its translation, fx, fy, cx, cy, the
+    distortion and whether it is a pinhole camera; None for another kind of view."""
+    if isinstance(view, PinholeView):
+        rotation = cv2.Rodrigues(cv2.Rodrigues(np.array(view.R_cam_w))[0])[0]
+        K = view.K
+        intrinsics = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+        return rotation, np.array(view.t_cam_w, float), intrinsics, np.array(view.dist), True
+    if isinstance(view, OrthographicPlane):
+        rotation = np.zeros((3, 3))
+        rotation[:2] = view.R_w_view[:, :2].T
+        return rotation, np.zeros(3), np.ones(4), np.zeros(5), False
+    return None
+
+
+def _view_cameras(parts: tuple) -> tuple[Array, ...] | None:
+    """The points' model vectors and cameras, point by point, as
+    :func:`measurement_kernels.view_projections` takes them (None if a view is of a kind it
+    does not know)."""
+    G = sum(C.shape[0] for _, C, _, _ in parts)
+    C_all, A, t_all = np.empty((G, 3)), np.empty((G, 3, 3)), np.empty((G, 3))
+    intrinsics_all, dist_all = np.empty((G, 4)), np.empty((G, 5))
+    pinhole_all = np.empty(G, dtype=np.bool_)
+    start = 0
+    for view, C, R_w_b, o_b_w in parts:
+        constants = _camera_constants(view)
+        if constants is None:
+            return None
+        rotation, t, intrinsics, dist, pinhole = constants
+        rows = slice(start, start + C.shape[0])
+        C_all[rows] = C
+        A[rows] = rotation @ R_w_b
+        t_all[rows] = rotation @ o_b_w + t
+        intrinsics_all[rows] = intrinsics
+        dist_all[rows] = dist
+        pinhole_all[rows] = pinhole
+        start = rows.stop
+    return C_all, A, t_all, intrinsics_all, dist_all, pinhole_all
+
+
 @dataclass(frozen=True)
 class ViewGroups:
     """One trial's points segmented in single views (unsynchronised views), 2-D groups.
 
     ``parts`` holds, per view, ``(view, C, R_w_b, o_b_w_mm)`` with C the model vectors of its
-    points; the groups are the points of every part in order.
+    points; the groups are the points of every part in order. ``cameras``: the points' model
+    vectors and cameras for the compiled projection (made from ``parts``).
     """
 
     q: Array  # (1, 3)
@@ -195,10 +241,15 @@ class ViewGroups:
     R: Array  # (1, G, 2, 2)
     present: Array  # (1, G)
     parts: tuple
+    cameras: tuple | None = None
 
     dim = 2
     n_positions = 0
     has_velocity_group = False
+
+    def __post_init__(self) -> None:
+        if self.cameras is None:
+            object.__setattr__(self, "cameras", _view_cameras(self.parts))
 
     @property
     def q_r(self) -> Array:
@@ -228,6 +279,16 @@ class ViewGroups:
         Jacobian, so ``rate`` and ``deviation`` are unused.)
         """
         angle = self.q[0, 0] + sigmas[..., 0]
+        if self.cameras is not None:
+            points, least_depth = measurement_kernels.view_projections(
+                np.ascontiguousarray(angle, dtype=float).reshape(-1), *self.cameras
+            )
+            if least_depth <= 0.0:
+                raise ValueError(
+                    f"a predicted point is behind a camera (smallest depth {least_depth:.6g}"
+                    " mm); a pinhole view needs depth > 0"
+                )
+            return points.reshape(angle.shape + points.shape[1:])
         c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
         parts = []
         for view, C, R_w_b, o_b_w in self.parts:

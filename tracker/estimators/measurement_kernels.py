@@ -8,7 +8,9 @@
 - :func:`model_error`: the white model-error covariance of every group;
 - :func:`velocity_group`: the velocity's group of a frame;
 - :func:`carry_expansion`, :func:`carry_expansions`: the shape's expansion carried from its grid
-  node to the frame (one configuration, or several with the same numbers).
+  node to the frame (one configuration, or several with the same numbers);
+- :func:`view_projections`: single views' points at many angles, projected as the views
+  project them (pinhole with OpenCV's distortion, or orthographic).
 
 Each replaces a dozen numpy calls on arrays of a few elements. ``njit(cache=True,
 nogil=True)`` as in :mod:`tracker.estimators.ukf_kernels`; :func:`warm_up` compiles or loads
@@ -226,6 +228,69 @@ def carry_expansions(nodes, node, p, d):
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def view_projections(angle, C, A, t, intrinsics, dist, pinhole):
+    """The image points of model vectors turned about z_b by each angle.
+
+    Point g of angle i is ``A_g Rz(angle_i) C_g + t_g`` in its camera's frame, then, for a
+    pinhole camera, divided by its depth and distorted as ``cv2.projectPoints`` does (k1,
+    k2, p1, p2, k3) and scaled by the intrinsics; for an orthographic plane its first two
+    coordinates are the image's (mm).
+
+    Parameters
+    ----------
+    angle : array (n,)
+        q_r + delta_L of each prediction, rad.
+    C : array (G, 3)
+        Model vectors of the points, mm.
+    A, t : arrays (G, 3, 3), (G, 3)
+        Each point's camera: the rotation it projects with times its view's R_w_b, and that
+        rotation applied to o_b_w plus the camera's translation, mm.
+    intrinsics, dist : arrays (G, 4), (G, 5)
+        fx, fy, cx, cy (px) and the distortion coefficients of each point's camera.
+    pinhole : bool array (G,)
+
+    Returns
+    -------
+    points : array (n, G, 2)
+        px, or mm for orthographic planes.
+    least_depth : float
+        The smallest depth of a pinhole point, mm (inf without one).
+    """
+    n = angle.shape[0]
+    G = C.shape[0]
+    out = np.empty((n, G, 2))
+    least_depth = np.inf
+    for i in range(n):
+        c = math.cos(angle[i])
+        s = math.sin(angle[i])
+        for g in range(G):
+            x0 = c * C[g, 0] - s * C[g, 1]
+            x1 = s * C[g, 0] + c * C[g, 1]
+            x2 = C[g, 2]
+            R = A[g]
+            X = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[g, 0]
+            Y = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[g, 1]
+            if not pinhole[g]:
+                out[i, g, 0] = X
+                out[i, g, 1] = Y
+                continue
+            Z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[g, 2]
+            least_depth = min(least_depth, Z)
+            z = 1.0 / Z if Z != 0.0 else 1.0
+            x = X * z
+            y = Y * z
+            k = dist[g]
+            r2 = x * x + y * y
+            r4 = r2 * r2
+            cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * (r4 * r2)
+            xd = x * cdist + k[2] * (2.0 * x * y) + k[3] * (r2 + 2.0 * x * x)
+            yd = y * cdist + k[2] * (r2 + 2.0 * y * y) + k[3] * (2.0 * x * y)
+            out[i, g, 0] = xd * intrinsics[g, 0] + intrinsics[g, 2]
+            out[i, g, 1] = yd * intrinsics[g, 1] + intrinsics[g, 3]
+    return out, least_depth
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on tiny inputs of the filters' types (once
@@ -245,6 +310,10 @@ def warm_up() -> None:
         np.zeros((1, G + 1, 3, 3)), np.zeros((1, G + 1, 3, 3)), np.zeros((1, G + 1, 3)),
         np.zeros((1, G + 1, 3, 5)),
     )  # fmt: skip
+    view_projections(
+        np.zeros(1), c[0], eye[0], c[0], np.ones((G, 4)), np.zeros((G, 5)),
+        np.ones(G, dtype=bool),
+    )  # fmt: skip
 
 
 __all__ = [
@@ -254,5 +323,6 @@ __all__ = [
     "horizontal_radius",
     "model_error",
     "velocity_group",
+    "view_projections",
     "warm_up",
 ]

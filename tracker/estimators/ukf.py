@@ -105,6 +105,12 @@ def observation_groups(
         cross = cross[None]
     q_dot = None if observation.q_dot is None else _array(observation.q_dot, (3,))
     has_3d = tip is not None or markers is not None or velocity is not None
+    if has_3d and observation.views and not _any_position(tip, tip_cov, markers, markers_cov):
+        # The views carry the frame (a velocity alone is not fused with them): no expansion.
+        has_3d = False
+        partial = (tip is not None and tip_cov is not None) or (
+            markers is not None and n_markers > 0
+        )
     if has_3d:
         c, JK = expansion.expanded(q[None])
         groups = assemble_expanded(
@@ -123,6 +129,18 @@ def observation_groups(
         if views is not None:
             return views[0], partial or views[1]
     return None, partial
+
+
+def _any_position(tip, tip_cov, markers, markers_cov) -> bool:
+    """Whether the tip or a marker is present (finite, with a finite covariance), as
+    :func:`~tracker.estimators.measurement.assemble_expanded` finds them."""
+    if tip is not None and tip_cov is not None:
+        if np.isfinite(tip).all() and np.isfinite(tip_cov).all():
+            return True
+    if markers is None or markers_cov is None or markers.shape[1] == 0:
+        return False
+    finite = np.isfinite(markers).all(axis=-1) & np.isfinite(markers_cov).all(axis=(-2, -1))
+    return bool(finite.any())
 
 
 def marker_blocks(markers_cov, n_markers: int) -> Array:
