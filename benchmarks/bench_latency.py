@@ -55,6 +55,7 @@ from replay.simulation.simulator import default_scene  # noqa: E402
 from replay.simulation.sources import session_joints, simulated_session  # noqa: E402
 from tracker.estimators import make_estimator  # noqa: E402
 from tracker.estimators.checks import CheckedEstimator  # noqa: E402
+from tracker.estimators.ukf import BendingPlaneUKF  # noqa: E402
 from tracker.io.datagrams import SegmentedMarkers, encode_joints  # noqa: E402
 from tracker.io.udp import EstimateSender, JointReceiver  # noqa: E402
 from tracker.live.loop import LiveTracker  # noqa: E402
@@ -75,6 +76,7 @@ LOOP_WORK = (
     (JointReceiver, "sample"),
     (Reconstructor, "observe"),
     (CheckedEstimator, "step"),
+    (BendingPlaneUKF, "prepare"),
     (LiveTracker, "_dispatch"),
     (LiveTracker, "_predict_region"),
     (PairSegmenter, "rehearse"),

@@ -185,6 +185,30 @@ def test_priming_drains_the_joints_predicts_the_region_and_pauses_the_sinks(sess
     tracker.close()
 
 
+def test_priming_prepares_the_estimator_s_model_at_the_frame_s_joints(session, joints):
+    """The shape expansion's node of the frame's joints (six shape evaluations) is computed
+    in the priming, from the joints moved on to the frame's time: the frame's own step
+    computes none. The filter's state is unchanged by it."""
+    segmenter, memory = StandInSegmenter(session.frames), MemorySink()
+    tracker = loop_of(session, joints, segmenter, memory)
+    for k in range(3):
+        step(tracker, session, joints, k, received_s=10.0 + 0.05 * k)
+    due_s = 10.15
+    joints.send_until(session.frames[3].time_s - 0.001)
+    ukf = tracker.estimator.inner
+    nodes = ukf._expansion._nodes
+    before, state, P = set(nodes), ukf._bank.x.copy(), ukf._bank.P.copy()
+    assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
+    primed = set(nodes) - before
+    assert len(primed) == 1
+    np.testing.assert_array_equal(ukf._bank.x, state)
+    np.testing.assert_array_equal(ukf._bank.P, P)
+    step(tracker, session, joints, 3, received_s=due_s)
+    assert set(nodes) - before == primed  # the step found its node ready
+    assert memory.results[-1].estimate.valid
+    tracker.close()
+
+
 def test_without_a_pace_or_with_priming_off_the_loop_never_primes(session, joints):
     segmenter, memory = StandInSegmenter(session.frames), MemorySink()
     tracker = loop_of(session, joints, segmenter, memory)

@@ -740,3 +740,21 @@ def test_a_frame_whose_3d_points_are_all_missing_is_fused_from_its_views():
     assert np.isfinite(a.delta_L_rad) and a.std_rad < 0.5
     assert a.delta_L_rad == b.delta_L_rad and a.std_rad == b.std_rad
     assert Flag.PARTIAL in a.flags and Flag.PARTIAL not in b.flags
+
+
+def test_preparing_the_expansion_changes_no_number_and_ignores_joints_not_finite():
+    """ShapeExpansion.prepare computes the node a frame at q will use (the live loop's
+    priming): the frame's expansion is then the same, bit for bit, as without it."""
+    from tracker.estimators.deviation import ShapeExpansion
+
+    catheter = default_catheter()
+    q = np.array([[0.3, 0.612345, -0.40321]])
+    prepared, fresh = ShapeExpansion(catheter), ShapeExpansion(catheter)
+    prepared.prepare(np.array([0.3, np.nan, 0.1]))
+    prepared.prepare(np.array([0.3, 0.5, np.inf]))
+    assert not prepared._nodes
+    prepared.prepare(q[0])
+    assert len(prepared._nodes) == 1
+    for a, b in zip(prepared.expanded(q), fresh.expanded(q), strict=True):
+        assert np.array_equal(a, b)
+    assert prepared._nodes.keys() == fresh._nodes.keys()

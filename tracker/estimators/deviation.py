@@ -11,6 +11,8 @@ and time (:func:`deviation_decay`).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from models import _shape_kernels as shape_kernels
@@ -92,6 +94,15 @@ class ShapeExpansion:
             q = np.array([0.0, key[0] * self.GRID_MM, key[1] * self.GRID_MM])
             found = self._nodes[key] = _expansion(self.catheter, q)
         return found
+
+    def prepare(self, q: Array) -> None:
+        """Compute the node of joint values q (3,) now, if it is new: the live loop does it
+        while it waits for a frame, with the joints moved on to the frame's time (the
+        joints of a moving catheter reach a new node at most frames, six shape evaluations
+        that would otherwise be part of the frame's latency)."""
+        q_p, q_d = float(q[1]), float(q[2])
+        if math.isfinite(q_p) and math.isfinite(q_d):
+            self._node((round(q_p / self.GRID_MM), round(q_d / self.GRID_MM)))
 
     def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
         """c, J and K at the grid node ``key`` (its indices in steps of ``GRID_MM``)."""

@@ -124,6 +124,10 @@ class GridFilter(Estimator):
         measurement_kernels.warm_up()
         self.reset()
 
+    def prepare(self, q: Array) -> None:
+        """Get ready for a frame at joint values q (3,) (:meth:`BendingPlaneUKF.prepare`)."""
+        self._expansion.prepare(q)
+
     def reset(self) -> None:
         """Forget everything: uniform posterior, not initialised."""
         s = self.settings

@@ -371,6 +371,12 @@ class BendingPlaneUKF(Estimator):
         """Forget everything: the next informative frame initialises the filter again."""
         self._bank.reset()
 
+    def prepare(self, q: Array) -> None:
+        """Get ready for a frame at joint values q (3,), mm and rad: what :meth:`step` will
+        need of the model there is computed now (:meth:`ShapeExpansion.prepare`); the
+        filter's state is unchanged."""
+        self._expansion.prepare(q)
+
     @property
     def initialised(self) -> bool:
         """Whether the filter has a state (after its first informative frame)."""

@@ -37,6 +37,7 @@ Faults, each counted in the :class:`LiveSummary`:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -226,9 +227,7 @@ class LiveTracker:
         for sink in sinks:
             self.add_sink(sink)
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
-        self.age = LatencyRecorder()
-        self.latency = LatencyRecorder()
-        self.cycle = LatencyRecorder()
+        self.age, self.latency, self.cycle = (LatencyRecorder() for _ in range(3))
         # Where a frame's time goes, up to the estimate (the summary's ``stage_ms``).
         self.stages = {name: LatencyRecorder() for name in STAGES}
         self._last_time_s: float | None = None
@@ -239,9 +238,7 @@ class LiveTracker:
         self._primed = False  # for the frame due
         self._images = False  # the last frame was images (segmented here)
         self._roi: tuple[float, tuple[Array, ...]] | None = None  # (for time, px per view)
-        self._roi_arclengths = np.linspace(
-            0.0, reconstructor.catheter.length_mm, ROI_POINTS
-        )
+        self._roi_arclengths = np.linspace(0.0, reconstructor.catheter.length_mm, ROI_POINTS)
         self._capture: NewestOnly | None = None
         self._speed: float | None = 1.0  # of the source's stream time (None: no pace)
         self._reported: set[str] = set()
@@ -386,18 +383,17 @@ class LiveTracker:
 
         Once per frame, :data:`PRIME_LEAD_S` before the frame is due
         (:class:`~tracker.live.pacing.FramePace`): the joint datagrams are drained and
-        sampled at the frame's expected time, and the catheter's region in its images
-        predicted from them. That is work the frame needs anyway, done with the newest
-        joints; and it brings the loop's code and data back into the processor's caches,
-        which the other threads and processes used while the loop waited (the first stage of
-        a frame otherwise pays for it: ~0.6 ms a frame on a 2-core machine). With
-        ``rehearse``, the last frame's images are then segmented again, the result dropped
-        and the segmenter unchanged, earlier by the time that takes: a pair segmented 45 ms
-        after the last one costs about twice what it costs right after another, whether the
-        loop slept or spun meanwhile (the code and data of the segmentation leave the caches
-        over the wait). From then until the frame comes (at most one lead past its due
-        time), the queued sinks pause, so that they neither take those caches again nor hold
-        the interpreter when it comes.
+        sampled at the frame's expected time; the catheter's region in its images is
+        predicted from them, and an estimator with ``prepare(q)`` computes its model at
+        them. That is work the frame needs anyway, done with the newest joints; and it
+        brings the loop's code and data back into the processor's caches, which the other
+        threads and processes used while the loop waited (~0.6 ms a frame on a 2-core
+        machine otherwise). With ``rehearse``, the last frame's images are then segmented
+        again, the result dropped and the segmenter unchanged, earlier by the time that
+        takes: a pair segmented 45 ms after the last one costs about twice what it costs
+        right after another (its code and data leave the caches over the wait). From then
+        until the frame comes (at most one lead past its due time), the queued sinks pause,
+        so that they neither take those caches again nor hold the interpreter when it comes.
         """
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
@@ -414,10 +410,14 @@ class LiveTracker:
         time_s = self.pace.next_time_s
         self.joints.poll()
         sample = self.joints.sample(time_s)
-        if self._images and sample.status in (JointStatus.OK, JointStatus.HELD):
+        if sample.status in (JointStatus.OK, JointStatus.HELD):
             # Held: the newest values, moved on to the frame's time (a few ms).
-            ahead_s = max(sample.age_s, 0.0)
-            self._predict_region(time_s, self._moved_on(sample.q, sample.q_dot, ahead_s))
+            q = self._moved_on(sample.q, sample.q_dot, max(sample.age_s, 0.0))
+            if callable(prepare := getattr(self.estimator, "prepare", None)):
+                with contextlib.suppress(ValueError):  # joints out of range: the step says so
+                    prepare(q)  # the estimator's model at the frame's joints
+            if self._images:
+                self._predict_region(time_s, q)
         self._rehearse(time_s)
         self.priming.add(self.monotonic() - now)
         return True
