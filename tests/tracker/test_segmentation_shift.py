@@ -228,3 +228,49 @@ def test_compiled_choice_and_sums_match_numpy():
                 g[0] @ residual, g[1] @ residual)
     assert found[0] == expected[0]
     np.testing.assert_allclose(found[1:], expected[1:], rtol=1e-10)
+
+
+def _distance_to_polyline(x, y, points):
+    """Distance (px) of the points (x, y) (any shape) to the polyline through ``points``."""
+    best = np.full(np.shape(x), np.inf)
+    pairs = zip(points[:-1], points[1:], strict=True) if len(points) > 1 else [(points[0],) * 2]
+    for a, b in pairs:
+        d = b - a
+        length2 = d @ d
+        t = 0.0 if length2 == 0 else np.clip(((x - a[0]) * d[0] + (y - a[1]) * d[1]) / length2, 0, 1)
+        best = np.minimum(best, np.hypot(x - a[0] - t * d[0], y - a[1] - t * d[1]))
+    return best
+
+
+def test_the_cells_left_out_are_those_near_the_polylines():
+    """shift_grid_mask against the distance of every cell's centre to the polylines (their
+    finite points; a single point is a disc), and every pixel within a half width of a
+    polyline lies in a cell left out."""
+
+    class Cells:
+        cells_shape = (30, 40)  # a 160 x 120 image in cells of SHIFT_CELL_PX = 4
+
+    rng = np.random.default_rng(11)
+    cell = 4
+    rows, columns = np.indices(Cells.cells_shape)
+    centre_x, centre_y = (columns + 0.5) * cell - 0.5, (rows + 0.5) * cell - 0.5
+    pixel_y, pixel_x = np.indices((120, 160))
+    for trial in range(20):
+        lines = []
+        for _ in range(1 + trial % 2):
+            n = 1 if trial % 5 == 0 else int(rng.integers(2, 12))
+            points = np.cumsum(rng.normal(0.0, 12.0, (n, 2)), axis=0) + rng.uniform(-10, 170, 2)
+            if n > 3:
+                points[rng.integers(1, n - 1)] = np.nan  # not found: left out
+            lines.append((points, float(rng.uniform(1.0, 14.0))))
+        mask = shift_grid_mask(Cells, lines)
+        expected = np.zeros(Cells.cells_shape, bool)
+        covered = np.ones((120, 160), bool)
+        for points, half_width in lines:
+            finite = points[np.isfinite(points).all(axis=1)]
+            reach = 0.5 * cell * (np.ceil(2.0 * half_width / cell) + 2)
+            expected |= _distance_to_polyline(centre_x, centre_y, finite) <= reach
+            near = _distance_to_polyline(pixel_x, pixel_y, finite) <= half_width
+            covered &= ~near | mask.repeat(cell, 0).repeat(cell, 1).astype(bool)
+        np.testing.assert_array_equal(mask.astype(bool), expected)
+        assert covered.all()

@@ -6,7 +6,9 @@ over, compiled (numba; docs/vision.md section 4).
 - :func:`select_pixels`: the pixels of a band of rows whose gradient is above a threshold,
   with what the fit needs of them (:mod:`tracker.vision.shift_samples`, a stripe of the
   background model at a time);
-- :func:`centred_gradients`: those gradients less their mean per gray level.
+- :func:`centred_gradients`: those gradients less their mean per gray level;
+- :func:`mark_near_polyline`: the cells around the catheter that the fit leaves out
+  (:func:`tracker.vision.shift_pixels.shift_grid_mask`, every frame).
 
 As in :mod:`tracker.vision.kernels`: ``njit(cache=True, nogil=True)``, plain arrays of the
 fixed dtypes given in each docstring, and :func:`warm_up` compiles (or loads) them all with
@@ -232,6 +234,57 @@ def centred_gradients(levels, gradient, counts, sums):
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def mark_near_polyline(mask, points, reach_px, cell_px):
+    """Set to 1 the cells of ``mask`` whose centre is within ``reach_px`` of the polyline
+    through the finite rows of ``points``.
+
+    Parameters
+    ----------
+    mask : uint8 array (rows, columns)
+        Cells of ``cell_px`` square: cell (i, j) holds the pixels from (j cell_px, i cell_px),
+        its centre at ((j + 1/2) cell_px - 1/2, (i + 1/2) cell_px - 1/2), px.
+    points : float array (n, 2)
+        The polyline's vertices (x, y), px; rows that are not finite are left out (the
+        polyline joins the others). A single vertex marks a disc.
+    reach_px, cell_px : float
+    """
+    rows, columns = mask.shape
+    n = 0
+    finite = np.empty((points.shape[0], 2))
+    for k in range(points.shape[0]):
+        x, y = points[k, 0], points[k, 1]
+        if np.isfinite(x) and np.isfinite(y):
+            finite[n, 0] = x
+            finite[n, 1] = y
+            n += 1
+    if n == 0:
+        return
+    reach2 = reach_px * reach_px
+    half = 0.5 * cell_px - 0.5
+    for k in range(max(n - 1, 1)):
+        ax, ay = finite[k, 0], finite[k, 1]
+        bx, by = finite[min(k + 1, n - 1), 0], finite[min(k + 1, n - 1), 1]
+        dx, dy = bx - ax, by - ay
+        length2 = dx * dx + dy * dy
+        # The cells whose centre can be within reach: of the segment's box, widened.
+        j0 = max(int(np.ceil((min(ax, bx) - reach_px - half) / cell_px)), 0)
+        j1 = min(int(np.floor((max(ax, bx) + reach_px - half) / cell_px)), columns - 1)
+        i0 = max(int(np.ceil((min(ay, by) - reach_px - half) / cell_px)), 0)
+        i1 = min(int(np.floor((max(ay, by) + reach_px - half) / cell_px)), rows - 1)
+        for i in range(i0, i1 + 1):
+            cy = i * cell_px + half
+            for j in range(j0, j1 + 1):
+                cx = j * cell_px + half
+                t = 0.0
+                if length2 > 0.0:
+                    t = min(max(((cx - ax) * dx + (cy - ay) * dy) / length2, 0.0), 1.0)
+                ex = cx - ax - t * dx
+                ey = cy - ay - t * dy
+                if ex * ex + ey * ey <= reach2:
+                    mask[i, j] = 1
+
+
 def warm_up() -> None:
     """Compile (or load) this module's kernels on a tiny input, with the argument types the
     segmentation passes."""
@@ -245,3 +298,4 @@ def warm_up() -> None:
     lut = np.arange(256, dtype=np.float32)
     shift_sums(level.reshape(-1), index, levels, gradient, cell, np.zeros(4, np.uint8), lut,
                1.0, 0.0, 0.0, 8.0)
+    mark_near_polyline(np.zeros((2, 2), np.uint8), np.zeros((2, 2)), 1.0, 4.0)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from tracker.vision import shift_kernels
@@ -177,9 +176,6 @@ def shift_samples(background: Array) -> ShiftSamples:
     return ShiftSampler(background, 1).samples
 
 
-_FIXED_BITS = 2  # fractional bits of the polyline coordinates given to OpenCV
-
-
 def shift_grid_mask(samples: ShiftSamples, lines: list[tuple[Array, float]]) -> Array:
     """The cells of :func:`tracker.vision.photometry.fit_shift` within a distance of
     polylines.
@@ -194,20 +190,16 @@ def shift_grid_mask(samples: ShiftSamples, lines: list[tuple[Array, float]]) -> 
     Returns
     -------
     array ``samples.cells_shape``, uint8
-        1 on the cells to leave out, 0 elsewhere.
+        1 on the cells to leave out, 0 elsewhere: those whose centre is within the half
+        width of a polyline, rounded up to half cells, plus a cell (every cell with a pixel
+        within the half width, and a margin of about a cell).
     """
     mask = np.zeros(samples.cells_shape, np.uint8)
-    one = 1 << _FIXED_BITS
     for points, half_width_px in lines:
-        points = np.asarray(points, float).reshape(-1, 2)
-        points = points[np.isfinite(points).all(axis=1)]
-        if points.size == 0:
-            continue
-        # Cell (i, j) covers the pixels from (cell j, cell i), its centre half a pixel
-        # before (cell j + cell / 2, ...); one cell more of width for the cells cut.
-        fixed = np.rint(((points + 0.5) / SHIFT_CELL_PX - 0.5) * one).astype(np.int32)
-        thickness = math.ceil(2.0 * half_width_px / SHIFT_CELL_PX) + 1
-        cv2.polylines(mask, [fixed], False, 1, thickness, cv2.LINE_8, _FIXED_BITS)
-        for x, y in (fixed[0].tolist(), fixed[-1].tolist()):
-            cv2.circle(mask, (x, y), (thickness * one) // 2, 1, -1, cv2.LINE_8, _FIXED_BITS)
+        # The band's width in whole cells, and a cell more on each side.
+        reach_px = 0.5 * SHIFT_CELL_PX * (math.ceil(2.0 * half_width_px / SHIFT_CELL_PX) + 2)
+        shift_kernels.mark_near_polyline(
+            mask, np.ascontiguousarray(points, dtype=float).reshape(-1, 2), reach_px,
+            float(SHIFT_CELL_PX),
+        )  # fmt: skip
     return mask
