@@ -127,7 +127,8 @@ class LiveTracker:
     reconstructor : Reconstructor
         Frames -> observations in {B} (the registered base and the rig).
     estimator : Estimator
-        From :func:`tracker.estimators.make_estimator` (``"ukf"`` for live tracking).
+        From :func:`tracker.estimators.make_estimator` (``"ukf"`` for live tracking); one
+        with ``prepare(q)`` is prepared for each frame's joints while the loop primes.
     sinks : sequence of Sink
         Called in order on the loop's thread (:mod:`tracker.live.sinks`): put the estimate
         sender first, it is the one the latency is for, and every slow output behind a
