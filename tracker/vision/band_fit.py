@@ -129,9 +129,14 @@ def _window(image, background, lut, dark_gray, sigma_gray, cx, cy, ux, uy, along
 @numba.njit(cache=True, nogil=True)
 def _model(p, x, y, at_tip, jac):
     """The model's contrast at (x, y) and its gradient over the parameters into ``jac``."""
+    return _model_at(p, math.cos(p[2]), math.sin(p[2]), x, y, at_tip, jac)
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_at(p, ct, st, x, y, at_tip, jac):
+    """:func:`_model` with the direction's cosine and sine given (the same for every pixel
+    of a step)."""
     cx, cy, theta, kappa, sigma, h, rb, r1, r2, ab, at = p
-    ct = math.cos(theta)
-    st = math.sin(theta)
     dx = x - cx
     dy = y - cy
     a = dx * ct + dy * st
@@ -251,8 +256,9 @@ def fit_band(image, background, lut, dark_gray, sigma_gray, cx, cy, dir_x, dir_y
         A[:] = 0.0
         g[:] = 0.0
         total = 0.0
+        ct, st = math.cos(p[2]), math.sin(p[2])
         for i in range(n):
-            r = w[i] - _model(p, xs[i], ys[i], at_tip, jac)
+            r = w[i] - _model_at(p, ct, st, xs[i], ys[i], at_tip, jac)
             wi = weight[i]
             total += wi * r * r
             for j in range(N_PARAMS):
