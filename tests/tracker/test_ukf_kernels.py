@@ -593,3 +593,78 @@ def test_a_run_compiles_nothing_after_the_filters_are_made():
         timeout=600,
     )  # fmt: skip
     assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout
+
+
+def _update_views_one_by_one(
+    b, h, x_all, P_all, L_all, factor_ok, good_x, good_P, log_weight, mismatch_scale,
+    mismatch_decay, spread, q_r, C, A, t, intrinsics, dist, pinhole, z, R, scale, present, Wm,
+    Wc, *rules,
+):  # fmt: skip
+    """Gate.update_views as the separate kernels it calls, one by one from Python."""
+    P, L, ok_sigma = K.row_factors(b, h, P_all, L_all, factor_ok)
+    x = x_all[b, h]
+    sigmas, offsets = K.sigma_rows(x, L, spread)
+    r, n_sigma = sigmas.shape[:2]
+    points, least = MK.view_projections(
+        np.ascontiguousarray(q_r + sigmas[..., 0]).reshape(-1), C, A, t, intrinsics, dist, pinhole
+    )
+    hs = np.ascontiguousarray(points.reshape(r, n_sigma, -1))
+    noise = R[b] * scale[b][:, None, None, None]
+    S, rho, Pxz, d2 = K.innovation_stats(hs, np.ascontiguousarray(z[b].reshape(r, -1)), offsets,
+                                         noise, Wm, Wc, 2)  # fmt: skip
+    x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = (
+        Gate.gate_and_fuse(S, rho, Pxz, d2, present[b], ok_sigma, x, P, 2, *rules)
+    )
+    if least > 0.0:
+        Gate.commit_update(b, h, done, x_post, P_post, log_lik, x_all, P_all, good_x, good_P,
+                           log_weight, mismatch_scale, mismatch_decay)  # fmt: skip
+    return status, nis, dof, rejected, inlier, shown, rho, least
+
+
+def test_single_views_update_in_one_call_as_their_kernels_one_by_one(monkeypatch):
+    """The UKF over frames of single views (one view or the other, the tip or a marker
+    missing, a gross error): the fused update (ukf_gate.update_views) gives the estimates of
+    its kernels called one by one, bit for bit."""
+    from dataclasses import replace
+
+    from models.catheter import default_catheter
+    from models.imaging import default_pinhole_rig
+    from tracker.estimators.ukf import BendingPlaneUKF
+    from tracker.types import Observation, ViewMeasurement
+
+    catheter, rig = default_catheter(), default_pinhole_rig()
+    n = len(catheter.marker_arclengths_mm)
+    rng = np.random.default_rng(RNG_SEED)
+    cov3 = np.diag([0.01, 0.01, 0.005])
+    observations = []
+    for k in range(60):
+        q = np.array([0.3 + 0.02 * k, 0.6 - 0.004 * k, -0.4 + 0.01 * k])
+        a = q[0] + 1.0
+        turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+        points = catheter.points(q) @ turn.T
+        observation = Observation(
+            time_s=0.05 * k, q=q, tip_b_mm=points[0] + rng.normal(0, 0.1, 3), tip_cov_b=cov3,
+            markers_b_mm=points[1:], markers_cov_b=np.broadcast_to(cov3, (n, 3, 3)).copy(),
+        )  # fmt: skip
+        if k >= 5 and k % 3:  # single views from here on, two frames in three
+            view = rig.views[k % 2]
+            rows = [0] if k % 5 == 1 else list(range(1 + n))
+            uv = view.project(points[rows]) + rng.normal(0, 0.5, (len(rows), 2))
+            if k % 11 == 7:
+                uv[0] += 40.0  # a gross error
+            observation = replace(observation, tip_b_mm=None, markers_b_mm=None, views=(
+                ViewMeasurement(view, np.eye(3), np.zeros(3), uv,
+                                np.broadcast_to(0.25 * np.eye(2), (len(rows), 2, 2)).copy(),
+                                np.array(rows) - 1),
+            ))  # fmt: skip
+        observations.append(observation)
+    ukf = BendingPlaneUKF(catheter)
+    fused = [ukf.step(o) for o in observations]
+    monkeypatch.setattr(Gate, "update_views", _update_views_one_by_one)
+    ukf = BendingPlaneUKF(catheter)
+    separate = [ukf.step(o) for o in observations]
+    assert sum(e.nis is not None for e in fused[5:]) >= 30  # the single views updated
+    for a, b in zip(fused, separate, strict=True):
+        assert (a.delta_L_rad, a.std_rad, a.flags, a.nis, a.nis_dof, a.rejected_outliers) == (
+            b.delta_L_rad, b.std_rad, b.flags, b.nis, b.nis_dof, b.rejected_outliers
+        ) or (np.isnan(a.delta_L_rad) and np.isnan(b.delta_L_rad))

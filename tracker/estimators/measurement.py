@@ -184,6 +184,14 @@ class FrameGroups:
         return replace(self, present=present)
 
 
+def behind_camera(least_depth_mm: float) -> ValueError:
+    """The error of a single view's point predicted at or behind its camera."""
+    return ValueError(
+        f"a predicted point is behind a camera (smallest depth {least_depth_mm:.6g} mm); a"
+        " pinhole view needs depth > 0"
+    )
+
+
 @lru_cache(maxsize=64)
 def _camera_constants(view) -> tuple[Array, Array, Array, Array, bool] | None:
     """What :func:`measurement_kernels.view_projections` needs of a view: the rotation it
@@ -284,10 +292,7 @@ class ViewGroups:
                 np.ascontiguousarray(angle, dtype=float).reshape(-1), *self.cameras
             )
             if least_depth <= 0.0:
-                raise ValueError(
-                    f"a predicted point is behind a camera (smallest depth {least_depth:.6g}"
-                    " mm); a pinhole view needs depth > 0"
-                )
+                raise behind_camera(least_depth)
             return points.reshape(angle.shape + points.shape[1:])
         c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
         parts = []
@@ -673,6 +678,7 @@ __all__ = [
     "FrameFit",
     "FrameGroups",
     "ViewGroups",
+    "behind_camera",
     "decorrelated_velocity",
     "fit_frame",
     "group_coefficients",

@@ -80,6 +80,7 @@ from tracker.estimators.deviation import deviation_prior, quadratic_moments
 from tracker.estimators.measurement import (
     FrameFit,
     FrameGroups,
+    behind_camera,
     check_measurement_covariance,
     fit_frame,
     group_coefficients,
@@ -676,8 +677,20 @@ class FilterBank:
                 c(frame.present), frame.has_velocity_group, self.Wm, self.Wc,
                 self._deviation_index, self._rate_index, *rules,
             )  # fmt: skip
+        elif frame.cameras is not None:
+            # Single views of known cameras: projected and updated in one call as well.
+            status, nis, dof, rejected, inlier, shown, rho, least_depth = (
+                ukf_gate.update_views(
+                    b, h, self.x, self.P, self._factor, self._factor_ok, self.good_x,
+                    self.good_P, self.log_weight, self.mismatch_scale, MISMATCH_DECAY,
+                    self.spread, float(frame.q[0, 0]), *frame.cameras, frame.z, frame.R, scale,
+                    frame.present, self.Wm, self.Wc, *rules,
+                )
+            )  # fmt: skip
+            if least_depth <= 0.0:
+                raise behind_camera(least_depth)
         else:
-            # Single views: their projections are made in numpy, the rules are the same.
+            # Views of another kind: projected by their own method, the rules the same.
             P, factor, ok_sigma = ukf_kernels.row_factors(
                 b, h, self.P, self._factor, self._factor_ok
             )

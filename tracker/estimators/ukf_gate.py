@@ -3,10 +3,11 @@ of :mod:`tracker.estimators.ukf_kernels`: the gate of each group, the joint cons
 groups that pass, the mixture with the update without a doubtful group, the frame's
 likelihood under the hypothesis and the update's status (:func:`gate_and_fuse`); the
 write-back (:func:`commit_update`); both for a 3-D frame in one call with its innovation
-(:func:`update_3d`). Used by :class:`~tracker.estimators.ukf_core.FilterBank` for the live
-filter and the batch alike (docs/design.md, "Joint consistency and doubtful groups"), and
-warmed up by :func:`tracker.estimators.ukf_rules.warm_up`. Flags are passed as integers in
-the order of ``FLAG_ORDER``.
+(:func:`update_3d`), and for single views with their projections (:func:`update_views`).
+Used by :class:`~tracker.estimators.ukf_core.FilterBank` for the live filter and the batch
+alike (docs/design.md, "Joint consistency and doubtful groups"), and warmed up by
+:func:`tracker.estimators.ukf_rules.warm_up`. Flags are passed as integers in the order of
+``FLAG_ORDER``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,15 @@ import numba
 import numpy as np
 
 from tracker.estimators.linalg_kernels import _lu_solve
-from tracker.estimators.ukf_kernels import _mixture_row, fuse_row, innovation_3d, row_factors
+from tracker.estimators.measurement_kernels import view_projections
+from tracker.estimators.ukf_kernels import (
+    _mixture_row,
+    fuse_row,
+    innovation_3d,
+    innovation_stats,
+    row_factors,
+    sigma_rows,
+)
 
 # The flags the kernels set, in the order of the ``flags`` array they are given.
 FLAG_ORDER = (
@@ -336,4 +345,63 @@ def update_3d(
     return status, nis, dof, rejected, inlier, shown, rho
 
 
-__all__ = ["FLAG_ORDER", "commit_update", "gate_and_fuse", "update_3d"]
+@numba.njit(cache=True, nogil=True)
+def update_views(
+    b, h, x_all, P_all, L_all, factor_ok, good_x, good_P, log_weight, mismatch_scale,
+    mismatch_decay, spread, q_r, C, A, t, intrinsics, dist, pinhole, z, R, scale, present, Wm,
+    Wc, outlier_probability, outlier_scale, threshold, doubt, gates, min_information, flag,
+):  # fmt: skip
+    """The update of hypotheses (rows ``b``, ``h``) with single views' points, written back
+    in place, as :func:`update_3d` does it for a 3-D frame: their sigma points, each
+    projected into its view (:func:`~tracker.estimators.measurement_kernels.
+    view_projections`: ``q_r`` plus the angle, the points' model vectors ``C`` and cameras
+    ``A``, ``t``, ``intrinsics``, ``dist``, ``pinhole``), the innovation statistics with the
+    noise ``R`` times ``scale`` (:func:`~tracker.estimators.ukf_kernels.innovation_stats`),
+    the rules of :func:`gate_and_fuse` and the write-back of :func:`commit_update`. The same
+    kernels in the same order as those calls one by one, so the same numbers.
+
+    Returns ``(status, nis, dof, rejected, inlier, shown, rho)`` per row as
+    :func:`gate_and_fuse` gives them, and the least depth of a pinhole point, mm: when it is
+    not positive nothing is written back (a point behind its camera; the caller says so).
+    """
+    r = b.shape[0]
+    n = x_all.shape[2]
+    G = C.shape[0]
+    P, L, ok_sigma = row_factors(b, h, P_all, L_all, factor_ok)
+    x = np.empty((r, n))
+    for i in range(r):
+        x[i] = x_all[b[i], h[i]]
+    sigmas, offsets = sigma_rows(x, L, spread)
+    n_sigma = sigmas.shape[1]
+    angle = np.empty(r * n_sigma)
+    for i in range(r):
+        for k in range(n_sigma):
+            angle[i * n_sigma + k] = q_r + sigmas[i, k, 0]
+    points, least_depth = view_projections(angle, C, A, t, intrinsics, dist, pinhole)
+    hs = points.reshape((r, n_sigma, 2 * G))
+    rows_z = np.empty((r, 2 * G))
+    noise = np.empty((r, G, 2, 2))
+    rows_present = np.empty((r, G), dtype=np.bool_)
+    for i in range(r):
+        k = b[i]
+        for g in range(G):
+            rows_present[i, g] = present[k, g]
+            for a in range(2):
+                rows_z[i, 2 * g + a] = z[k, g, a]
+                for c in range(2):
+                    noise[i, g, a, c] = R[k, g, a, c] * scale[k]
+    S, rho, Pxz, d2 = innovation_stats(hs, rows_z, offsets, noise, Wm, Wc, 2)
+    x_post, P_post, nis, dof, log_lik, inlier, status, rejected, done, shown = gate_and_fuse(
+        S, rho, Pxz, d2, rows_present, ok_sigma, x, P, 2, outlier_probability,
+        outlier_scale, threshold, doubt, gates, min_information, flag,
+    )  # fmt: skip
+    if least_depth <= 0.0:
+        return status, nis, dof, rejected, inlier, shown, rho, least_depth
+    commit_update(
+        b, h, done, x_post, P_post, log_lik, x_all, P_all, good_x, good_P, log_weight,
+        mismatch_scale, mismatch_decay,
+    )  # fmt: skip
+    return status, nis, dof, rejected, inlier, shown, rho, least_depth
+
+
+__all__ = ["FLAG_ORDER", "commit_update", "gate_and_fuse", "update_3d", "update_views"]

@@ -43,6 +43,7 @@ from tracker.estimators.ukf_gate import (
     commit_update,
     gate_and_fuse,
     update_3d,
+    update_views,
 )
 from tracker.estimators.ukf_kernels import predict_row
 
@@ -501,6 +502,15 @@ def warm_up() -> None:
                     1 if n == 4 else -1, 0.01, 5.0, 10.0, 5.0, shared(np.full(G + 1, 20.0)),
                     1.0, flag,
                 )  # fmt: skip
+            # Single views (ViewGroups.cameras: the points' model vectors and cameras).
+            update_views(
+                rows, rows, x, P, L, ok, x.copy(), P.copy(), lw, np.ones(B), 0.99, 1.0, 0.0,
+                np.ones((G, 3)), np.broadcast_to(np.eye(3), (G, 3, 3)).copy(), np.ones((G, 3)),
+                np.ones((G, 4)), np.zeros((G, 5)), np.ones(G, dtype=bool), np.zeros((B, G, 2)),
+                np.broadcast_to(np.eye(2), (B, G, 2, 2)).copy(), np.ones(B),
+                np.ones((B, G), dtype=bool), W, W, 0.01, 5.0, 10.0, 5.0,
+                shared(np.full(G + 1, 20.0)), 1.0, flag,
+            )  # fmt: skip
         normalise_single(active, lw)
         leading(active, lw)
         report(x, P, active, lw, running, prior, 1 if n > 2 else -1, flags, flag)
