@@ -209,6 +209,34 @@ def test_priming_prepares_the_estimator_s_model_at_the_frame_s_joints(session, j
     tracker.close()
 
 
+def test_joints_held_for_late_datagrams_are_moved_on_at_their_rates(session, joints):
+    """A frame whose newest joint datagram is older than the image (the controller late by
+    a few ms) takes the newest values moved on at their rates to the image time: within
+    the motion's second order of the truth, where the values held would be off by the rate
+    times the delay. Past the hold (20 ms) the frame is flagged and predicts only."""
+    from tracker.live.sinks import LiveStatus
+
+    segmenter, memory = StandInSegmenter(session.frames), MemorySink()
+    tracker = loop_of(session, joints, segmenter, memory)
+    for k in range(3):
+        step(tracker, session, joints, k, received_s=10.0 + 0.05 * k)
+    for k, late_s in ((3, 0.008), (4, 0.015), (5, 0.030)):
+        t = session.frames[k].time_s
+        joints.send_until(t - late_s)
+        result = tracker.step(images_of(session, k), 10.0 + 0.05 * k)
+        newest_s = (joints.next - 1) / JOINT_RATE_HZ
+        truth = session_joints(t)[0]
+        held = session_joints(newest_s)[0]
+        if late_s <= 0.02:
+            assert not result.status
+            error = np.abs(result.frame.q - truth).max()
+            assert error < 0.01 * np.abs(held - truth).max()
+        else:
+            assert result.status & LiveStatus.JOINTS_EXTRAPOLATED
+            np.testing.assert_allclose(result.frame.q, held, rtol=0, atol=1e-12)
+    tracker.close()
+
+
 def test_without_a_pace_or_with_priming_off_the_loop_never_primes(session, joints):
     segmenter, memory = StandInSegmenter(session.frames), MemorySink()
     tracker = loop_of(session, joints, segmenter, memory)
