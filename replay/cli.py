@@ -106,6 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="segment every view in the loop's process (default: the views after the first"
         " in a worker process, at the same time, with two processors or more; docs/live.md)",
     )
+    demo.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="leave each frame's work at the ordinary priority (default: a real-time"
+        " priority, SCHED_FIFO, where permitted; docs/live.md)",
+    )
     _add_nuisance(demo)
     add_rerun_args(demo, save_default=DEMO_RRD, bind_option=True)
     demo.set_defaults(run=_command("demo"))
@@ -631,6 +637,12 @@ def _add_track(sub) -> None:
         action="store_true",
         help="segment every view in the loop's process (default: the views after the first"
         " in a worker process, at the same time, with two processors or more; docs/live.md)",
+    )
+    run.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="leave each frame's work at the ordinary priority (default: a real-time"
+        " priority, SCHED_FIFO, where permitted; docs/live.md)",
     )
     p.set_defaults(run=_command("track"))
 

@@ -89,6 +89,9 @@ class DemoSettings:
     collect_between_frames : bool
         Python's garbage collection run between frames only
         (:class:`tracker.live.collection.FrameCollection`).
+    realtime : bool
+        Each frame's work (the loop's and the worker's) at a real-time priority, where
+        permitted (:class:`tracker.live.priority.FramePriority`).
     """
 
     seconds: float = 15.0
@@ -106,6 +109,7 @@ class DemoSettings:
     keep_awake: bool = True
     segmentation_worker: bool = True
     collect_between_frames: bool = True
+    realtime: bool = True
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:
@@ -420,6 +424,9 @@ def report_lines(
     if summary.kept_awake is not None:
         awake = "yes" if summary.kept_awake else "no (frames may start cold)"
         lines.append(f"| processors kept awake between frames | {awake} |")
+    if summary.realtime is not None:
+        realtime = "yes" if summary.realtime else "no (other work can hold them up)"
+        lines.append(f"| frames at a real-time priority (loop and worker) | {realtime} |")
     if summary.segmentation_worker is not None:
         lines.append(
             f"| views segmented side by side (a worker process) | {summary.segmentation_worker} |"
@@ -482,6 +489,7 @@ def run_demo(
     segmenter = pair_segmenter(
         catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
         parallel=None if settings.segmentation_worker else False, report=report,
+        realtime=settings.realtime,
     )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
     others = {name: make_estimator(name, catheter) for name in compare}
@@ -509,6 +517,7 @@ def run_demo(
             keep_serving=True,
             keep_awake=settings.keep_awake,
             collect_between_frames=settings.collect_between_frames,
+            realtime=settings.realtime,
         )
         with LiveSession(
             live_settings,

@@ -20,5 +20,6 @@ def run(args: argparse.Namespace) -> int:
         image_nuisance=nuisance_from_args(args),
         keep_awake=not args.no_keep_awake,
         segmentation_worker=not args.no_segmentation_worker,
+        realtime=not args.no_realtime,
     )
     return run_demo(settings, args)

@@ -119,6 +119,7 @@ def _session_settings(args: argparse.Namespace, kind: str) -> SessionSettings:
         image_every=args.image_every,
         pin=not args.no_pin,
         keep_awake=not args.no_keep_awake,
+        realtime=not args.no_realtime,
     )
 
 
@@ -162,6 +163,7 @@ def _segmenter(args: argparse.Namespace, scene: Scene) -> PairSegmenter | Parall
     return pair_segmenter(
         scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, backgrounds, settings,
         parallel=False if args.no_segmentation_worker else None, report=_track_report,
+        realtime=not args.no_realtime,
     )
 
 

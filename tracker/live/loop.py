@@ -11,10 +11,10 @@ Real time (docs/live.md, "Real time"): the loop's own thread does only what the 
 waits for: segmentation (in a region around the catheter predicted for this frame once the
 last estimate was sent), joint values at the image time, reconstruction, the estimator and
 the sinks given to it (the estimate datagram); every other output runs behind a
-:class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source (cameras) is captured
-in its own thread and the loop always takes the newest frame
-(:class:`~tracker.live.sources.NewestOnly`): the older ones are dropped and counted, never
-processed late. Python's garbage collection runs between frames.
+:class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source (cameras) is
+captured in its own thread and the loop always takes the newest frame (``NewestOnly``): the
+older ones are dropped and counted, never processed late. Python's garbage collection runs
+between frames; a frame's step, at a real-time priority where permitted.
 
 Faults, each counted in the :class:`LiveSummary`:
 
@@ -56,6 +56,7 @@ from tracker.io.udp import JointReceiver
 from tracker.live.affinity import LoopAffinity
 from tracker.live.collection import FrameCollection
 from tracker.live.pacing import FramePace, PrimeTiming
+from tracker.live.priority import FramePriority
 from tracker.live.signals import StopRequest
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
 from tracker.live.sources import NewestOnly
@@ -97,13 +98,7 @@ class _SinkEntry:
     enabled: bool = True
 
 
-def _sink_name(sink: object) -> str:
-    return str(getattr(sink, "name", type(sink).__name__))
-
-
-def _arrivals(
-    source: Iterable, clock: Callable[[], float]
-) -> Iterator[tuple[object, float] | None]:
+def _arrivals(source: Iterable, clock: Callable[[], float]) -> Iterator:
     """(item, the time it left the source) of every item; ``None`` as it comes."""
     for item in source:
         yield None if item is None else (item, clock())
@@ -175,6 +170,9 @@ class LiveTracker:
         During :meth:`run`, keep the loop's thread on a processor of its own and the
         process's other threads and child processes off it
         (:class:`~tracker.live.affinity.LoopAffinity`; Linux, two processors or more).
+    realtime : bool
+        Each frame's step at a real-time priority during the run, where permitted
+        (:class:`~tracker.live.priority.FramePriority`).
     keep_awake : bool
         During :meth:`run`, keep the processors out of their deep sleep states, which lose
         the caches between frames (:class:`~tracker.live.wake.WakeLatency`; Linux, needs
@@ -201,6 +199,7 @@ class LiveTracker:
         rehearse: bool = True,
         pin: bool = True,
         keep_awake: bool = False,
+        realtime: bool = True,
         collect_between_frames: bool = True,
     ) -> None:
         self.reconstructor = reconstructor
@@ -218,6 +217,8 @@ class LiveTracker:
         self._settles = callable(getattr(segmenter, "settle", None))
         self.affinity = LoopAffinity() if pin else None
         self.wake = WakeLatency(report=report) if keep_awake else None
+        self.realtime = realtime
+        self._priority = FramePriority(enabled=False, report=report)  # on during run
         self.collection = FrameCollection(enabled=collect_between_frames)
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
         self.priming = PrimeTiming()  # how long priming takes, the rehearsal included
@@ -259,7 +260,7 @@ class LiveTracker:
         """
         if isinstance(sink, QueuedSink):
             sink.idle = self.idle
-        entry = _SinkEntry(sink, _sink_name(sink))
+        entry = _SinkEntry(sink, str(getattr(sink, "name", type(sink).__name__)))
         at = [k for k, e in enumerate(self._sinks) if e.sink is before]  # (no sink is None)
         self._sinks.insert(at[0] if at else len(self._sinks), entry)
 
@@ -345,12 +346,10 @@ class LiveTracker:
         return q, sample.q_dot, status
 
     def _predict_region(self, time_s: float, q: Array) -> None:
-        """Where the catheter will be in the views at ``time_s`` with the joints ``q``.
-
-        The model at the last valid estimate, px per view, for the segmentation of the frame
-        at ``time_s`` (None without a valid estimate: the segmenter then searches around the
-        last frame's catheter, or the whole image).
-        """
+        """Where the catheter will be in the views at ``time_s`` with the joints ``q``: the
+        model at the last valid estimate, px per view, for the segmentation of the frame at
+        ``time_s`` (None without a valid estimate: the segmenter then searches around the
+        last frame's catheter, or the whole image)."""
         self._roi = None
         if self._last_delta_L_rad is None or not np.all(np.isfinite(q)):
             return
@@ -471,11 +470,11 @@ class LiveTracker:
         item : ImageSet, SegmentedMarkers or Frame
         received_s : float, optional
             Monotonic time the item left the source (latency reference unless the source's
-            times are monotonic stamps); now if not given.
-        """
+            times are monotonic stamps); now if not given."""
         self.idle.clear()
         try:
-            return self._step(item, received_s)
+            with self._priority:
+                return self._step(item, received_s)
         finally:
             self.idle.set()
 
@@ -661,6 +660,7 @@ class LiveTracker:
                 self.affinity.apply(() if capture is None else (capture.thread_id,))
             if self.wake is not None:
                 self.summary.kept_awake = self.wake.hold()
+            self.summary.realtime = self._priority.start() if self.realtime else None
             self.collection.hold()
             if self._capture is not None:
                 poll_s = self._capture.poll_s
@@ -710,6 +710,7 @@ class LiveTracker:
                 self.affinity.restore()
             if self.wake is not None:
                 self.wake.release()
+            self._priority.stop()
             self.collection.release()
             self.summary.garbage_collection = self.collection.describe()
             self.summary.stop_reason = reason

@@ -105,6 +105,9 @@ class SessionSettings:
     collect_between_frames : bool
         Python's garbage collection run between frames, never within one
         (:class:`tracker.live.collection.FrameCollection`).
+    realtime : bool
+        Each frame's step at a real-time priority, where permitted
+        (:class:`tracker.live.priority.FramePriority`).
     """
 
     estimator: str = "ukf"
@@ -128,6 +131,7 @@ class SessionSettings:
     pin: bool = True
     keep_awake: bool = True
     collect_between_frames: bool = True
+    realtime: bool = True
 
     def __post_init__(self) -> None:
         if self.image_every < 1:
@@ -343,6 +347,7 @@ class LiveSession:
                 pin=settings.pin,
                 keep_awake=settings.keep_awake,
                 collect_between_frames=settings.collect_between_frames,
+                realtime=settings.realtime,
             )
             if viewer_sink is not None:
                 viewer_sink.summary = self.tracker.summary

@@ -83,6 +83,9 @@ class LiveSummary:
     # Whether the processors were kept out of their deep sleep states during the run
     # (tracker.live.wake; None: not asked).
     kept_awake: bool | None = None
+    # Whether each frame's step ran at a real-time priority (tracker.live.priority; None:
+    # not asked).
+    realtime: bool | None = None
     # Whether the views after the first were segmented in a worker process, at the same time
     # ("yes", or "no (why)"; tracker.vision.parallel); None: no images segmented in parallel.
     segmentation_worker: str | None = None
@@ -169,6 +172,11 @@ class LiveSummary:
             out.append(
                 "  processors kept awake between frames: "
                 + ("yes" if self.kept_awake else "no (frames may start cold)")
+            )
+        if self.realtime is not None:
+            out.append(
+                "  frames at a real-time priority: "
+                + ("yes" if self.realtime else "no (other work can hold them up)")
             )
         if self.segmentation_worker is not None:
             out.append(f"  views segmented side by side: {self.segmentation_worker}")

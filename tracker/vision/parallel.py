@@ -44,6 +44,7 @@ import numpy as np
 from models.catheter import Catheter
 from models.imaging import Rig
 from tracker.live.collection import FrameCollection
+from tracker.live.priority import FramePriority
 from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
 from tracker.vision.segmentation import ViewSegmentation
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
@@ -149,6 +150,9 @@ class ParallelPairSegmenter:
     poll_s, worker_poll_s : float
         How long the caller polls for an answer, and the worker for the frame after a
         rehearsal, before they block, s (:data:`SPIN_S`, :data:`REHEARSAL_SPIN_S`).
+    realtime : bool
+        The worker segments each frame, from the request to its answer, at a real-time
+        priority where permitted (:class:`~tracker.live.priority.FramePriority`).
 
     Attributes
     ----------
@@ -168,6 +172,7 @@ class ParallelPairSegmenter:
         report: Callable[[str], None] = _report_stderr,
         poll_s: float = SPIN_S,
         worker_poll_s: float = REHEARSAL_SPIN_S,
+        realtime: bool = True,
     ) -> None:
         # Here first: the kernels are compiled and cached (a fresh machine) before the
         # worker loads them. Its cameras after the first are the fallback.
@@ -177,6 +182,7 @@ class ParallelPairSegmenter:
         self.report = report
         self.poll_s = float(poll_s)
         self._worker_poll_s = float(worker_poll_s)
+        self._realtime = bool(realtime)
         self.worker_failure: str | None = None
         self._remote = tuple(range(1, rig.n_views))  # the worker's views
         self._shapes = tuple(self.local.cameras[v].background.image.shape for v in self._remote)
@@ -225,6 +231,7 @@ class ParallelPairSegmenter:
                 tuple(np.asarray(b) for b in backgrounds),
                 settings,
                 self._worker_poll_s,
+                self._realtime,
             ),
             name="cathtrack-segmentation",
             daemon=True,
@@ -546,14 +553,17 @@ def pair_segmenter(
     *,
     parallel: bool | None = None,
     report: Callable[[str], None] = _report_stderr,
+    realtime: bool = True,
 ) -> PairSegmenter | ParallelPairSegmenter:
     """The live loop's segmenter: :class:`ParallelPairSegmenter` where this process may use
-    two processors or more (``parallel=None``) or when asked, else :class:`PairSegmenter`."""
+    two processors or more (``parallel=None``) or when asked, else :class:`PairSegmenter`;
+    ``realtime``: its worker's frames at a real-time priority where permitted."""
     if parallel is None:
         parallel = parallel_possible() and rig.n_views >= 2
     if parallel:
         return ParallelPairSegmenter(
-            catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings, report=report
+            catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings, report=report,
+            realtime=realtime,
         )
     return PairSegmenter(catheter, rig, R_w_b, o_b_w_mm, backgrounds, settings)
 
@@ -623,10 +633,12 @@ def _serve(
     backgrounds,
     settings,
     poll_s,
+    realtime,
 ) -> None:
     """The worker process: segment its views on request until told to stop, or until the
     caller's end of the pipe closes. Answers ``(kind, value)``: ``("ok", ...)`` or
-    ``("error", exception)``."""
+    ``("error", exception)``. With ``realtime``, from a frame's request to its answer at a
+    real-time priority where permitted (:class:`~tracker.live.priority.FramePriority`)."""
     import cv2
 
     # Ctrl-C reaches the whole process group: the caller stops the worker, not the signal.
@@ -647,16 +659,17 @@ def _serve(
             with FrameCollection() as collection:
                 _work(
                     wake, shared, [pair.cameras[v] for v in remote], pair.segmenter, poll_s,
-                    collection,
+                    collection, FramePriority(realtime),
                 )
     finally:
         shared.release()
         memory.close()
 
 
-def _work(wake, shared, cameras, segmenter, poll_s: float, collection) -> None:
+def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority) -> None:
     """Answer the caller's requests (see :func:`_serve`) until it says stop; garbage is
-    collected after an answer (:class:`~tracker.live.collection.FrameCollection`)."""
+    collected after an answer (:class:`~tracker.live.collection.FrameCollection`), a frame
+    segmented within ``priority`` (a :class:`~tracker.live.priority.FramePriority`)."""
     control = shared.control
     seen = int(control[_REQUEST])  # none is sent before this answer: ready
     payload: list[bytes] = []
@@ -680,19 +693,20 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection) -> None:
         kind, slot = int(control[_KIND]), int(control[_SLOT])
         spin_until = 0.0
         if kind == _SEGMENT:
-            try:
-                views = tuple(
-                    camera.in_camera_frame(
-                        camera.segment(
-                            shared.slots[k][slot], _taken_points(shared, k), settle=False
+            with priority:
+                try:
+                    views = tuple(
+                        camera.in_camera_frame(
+                            camera.segment(
+                                shared.slots[k][slot], _taken_points(shared, k), settle=False
+                            )
                         )
+                        for k, camera in enumerate(cameras)
                     )
-                    for k, camera in enumerate(cameras)
-                )
-                answer = ("ok", views)
-            except Exception as exc:  # noqa: BLE001 (raised again in the caller)
-                answer = ("error", exc)
-            _answer_with(shared, seen, answer)
+                    answer = ("ok", views)
+                except Exception as exc:  # noqa: BLE001 (raised again in the caller)
+                    answer = ("error", exc)
+                _answer_with(shared, seen, answer)
             wake.send_bytes(b"")
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()

@@ -1,0 +1,165 @@
+"""A frame's work at a real-time priority (tracker/live/priority.py): the thread raised to
+SCHED_FIFO inside, as it was outside, nothing inherited by threads started meanwhile, and a
+refusal said once; the live loop's step and the segmentation worker's frames use it."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from models.catheter import default_catheter
+from replay.simulation.sources import simulated_session
+from tracker.estimators import make_estimator
+from tracker.live.loop import LiveTracker
+from tracker.live.priority import PRIORITY, FramePriority
+from tracker.reconstruction import Reconstructor
+
+pytestmark = pytest.mark.skipif(
+    not hasattr(os, "sched_setscheduler"), reason="scheduling policies are Linux's"
+)
+RESET = getattr(os, "SCHED_RESET_ON_FORK", 0)
+
+
+def policy(tid: int = 0) -> int:
+    return os.sched_getscheduler(tid) & ~RESET
+
+
+def permitted() -> bool:
+    """Whether this process may use SCHED_FIFO (root, CAP_SYS_NICE or an rtprio limit)."""
+    return FramePriority().start()
+
+
+def refuse(monkeypatch):
+    def refused(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refused)
+
+
+def test_inside_the_thread_is_real_time_and_threads_started_there_are_not():
+    if not permitted():
+        pytest.fail("this test needs SCHED_FIFO: run as root or with an rtprio limit")
+    before = policy(), os.sched_getparam(0).sched_priority
+    started = {}
+
+    def child():
+        started["policy"] = policy()
+
+    with FramePriority() as priority:
+        assert priority.enabled and priority.refused is None
+        assert policy() == os.SCHED_FIFO
+        assert os.sched_getparam(0).sched_priority == PRIORITY
+        thread = threading.Thread(target=child)
+        thread.start()
+        thread.join()
+    assert started["policy"] == os.SCHED_OTHER  # not inherited
+    assert (policy(), os.sched_getparam(0).sched_priority) == before
+
+
+def test_off_or_refused_it_changes_nothing_and_a_refusal_is_said_once(monkeypatch):
+    with FramePriority(enabled=False):
+        assert policy() == os.SCHED_OTHER
+    said = []
+    priority = FramePriority(report=said.append)
+    refuse(monkeypatch)
+    assert not priority.start()
+    for _ in range(3):
+        with priority:
+            assert policy() == os.SCHED_OTHER
+    assert len(said) == 1 and "ordinary priority" in said[0]
+    assert "not permitted" in priority.refused
+    assert not priority.enabled
+
+
+class PolicySink:
+    """Records the scheduling policy of the thread that hands it each frame (the loop's)."""
+
+    name = "policy"
+
+    def __init__(self):
+        self.policies = []
+
+    def handle(self, frame, observation, estimate, latency_s, status):
+        self.policies.append(policy())
+
+    def close(self):
+        pass
+
+
+def run_loop(realtime: bool, report=None):
+    session = simulated_session(duration_s=0.5, frame_rate_hz=20.0, noise=0.1, seed=3)
+    scene = session.scene
+    sink = PolicySink()
+    tracker = LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        make_estimator("ukf", scene.catheter), [sink], realtime=realtime, pin=False,
+        report=report or (lambda line: None),
+    )  # fmt: skip
+    summary = tracker.run(session.frames, handle_signals=False)
+    return summary, sink.policies
+
+
+def test_the_loop_steps_each_frame_at_real_time_priority_and_then_lets_go(monkeypatch):
+    allowed = permitted()
+    summary, policies = run_loop(realtime=True)
+    assert len(policies) == summary.frames_processed == 10
+    assert summary.realtime is allowed
+    assert set(policies) == {os.SCHED_FIFO if allowed else os.SCHED_OTHER}
+    assert policy() == os.SCHED_OTHER  # the run is over
+    summary, policies = run_loop(realtime=False)
+    assert summary.realtime is None and set(policies) == {os.SCHED_OTHER}
+    said = []
+    refuse(monkeypatch)
+    summary, policies = run_loop(realtime=True, report=said.append)
+    assert summary.realtime is False and set(policies) == {os.SCHED_OTHER}
+    assert sum("ordinary priority" in line for line in said) == 1
+    assert any("frames at a real-time priority: no" in line for line in summary.lines())
+
+
+def _worker_policies(realtime: bool, frames: int = 40) -> set[int]:
+    """The segmentation worker's scheduling policies seen while it segments ``frames``
+    pairs (its main thread's, read from /proc as often as the sampler can)."""
+    from replay.simulation.render import Renderer, default_render_rig
+    from replay.simulation.simulator import default_scene
+    from tracker.vision.parallel import ParallelPairSegmenter
+
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=3)
+    rng = np.random.default_rng(3)
+    pairs = [renderer.render(np.array([0.2 * k, 0.6, 0.5]), 0.4, rng).images for k in range(4)]
+    seen: set[int] = set()
+    with ParallelPairSegmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
+        realtime=realtime,
+    ) as segmenter:  # fmt: skip
+        assert segmenter.parallel
+        stat = f"/proc/{segmenter._process.pid}/stat"
+        done = threading.Event()
+
+        def sample():
+            while not done.is_set():
+                with open(stat) as f:
+                    seen.add(int(f.read().rsplit(")", 1)[1].split()[38]))  # policy
+                time.sleep(0)
+
+        sampler = threading.Thread(target=sample)
+        sampler.start()
+        try:
+            for k in range(frames):
+                segmenter.segment(pairs[k % 4])
+        finally:
+            done.set()
+            sampler.join()
+    return seen
+
+
+def test_the_worker_segments_each_frame_at_real_time_priority():
+    fifo = os.SCHED_FIFO
+    if permitted():
+        assert fifo in _worker_policies(True)
+    assert fifo not in _worker_policies(False)

@@ -1,0 +1,95 @@
+"""A real-time priority for the work of a frame (Linux; elsewhere nothing is changed).
+
+Between its frames the loop waits and every other thread and process has the processors. When
+a frame comes, any of them that is running keeps its processor until its time slice is used
+up, and a kernel thread or a process that has slept a while gets the processor back at
+once: on the 2-core development machine a kernel thread (the memory monitor ``kdamond``)
+runs twice a second for 0.7-1.4 ms, and the demo's controller and the outputs' threads share
+the segmentation worker's processor. A frame's work that such a thread holds up is late by
+as long.
+
+:class:`FramePriority` raises the calling thread to ``SCHED_FIFO`` at priority 1 (above every
+ordinary thread, below the kernel's own real-time ones) for a frame's work only: the live
+loop from a frame's arrival to the end of its step, the segmentation worker from a request
+to its answer. A few milliseconds in fifty, so the others lose no more than that; the
+kernel's real-time throttling (by default 95% of each second) would still leave them their
+share if the work of a frame never ended. Threads and processes started meanwhile do not
+inherit it (``SCHED_RESET_ON_FORK``).
+
+Raising a thread's policy needs ``CAP_SYS_NICE`` or an ``rtprio`` resource limit (e.g.
+``@realtime - rtprio 10`` in ``/etc/security/limits.conf``): without it the first frame
+reports once that the work runs at the ordinary priority, and nothing else changes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable
+
+PRIORITY = 1  # the lowest real-time priority
+
+
+def _supported() -> bool:
+    return all(hasattr(os, name) for name in ("sched_setscheduler", "SCHED_FIFO"))
+
+
+class FramePriority:
+    """A context manager: the calling thread at ``SCHED_FIFO`` inside, as it was outside.
+
+    Parameters
+    ----------
+    enabled : bool
+        Off: entering changes nothing (also where the system has no such policy).
+    report : callable, optional
+        Told once when the system refuses the policy (it is then off).
+
+    Attributes
+    ----------
+    refused : str or None
+        Why the system refused, if it did.
+    """
+
+    def __init__(self, enabled: bool = True, report: Callable[[str], None] | None = None) -> None:
+        self.enabled = bool(enabled) and _supported()
+        self.report = report
+        self.refused: str | None = None
+        self._saved: tuple[int, os.sched_param] | None = None
+
+    def start(self) -> bool:
+        """Turn it on; whether the system allows it (tried once now: raised and lowered
+        again, and reported if refused)."""
+        self.enabled = _supported()
+        with self:
+            pass
+        return self.enabled
+
+    def stop(self) -> None:
+        """Turn it off."""
+        self.enabled = False
+
+    def __enter__(self) -> FramePriority:
+        if not self.enabled:
+            return self
+        try:
+            saved = os.sched_getscheduler(0), os.sched_getparam(0)
+            policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+            os.sched_setscheduler(0, policy, os.sched_param(PRIORITY))
+        except OSError as exc:  # not permitted (no CAP_SYS_NICE, no rtprio limit)
+            self.enabled = False
+            self.refused = str(exc)
+            if self.report is not None:
+                self.report(
+                    f"a frame's work runs at the ordinary priority ({exc}): other work on its"
+                    " processor can hold it up; CAP_SYS_NICE or an rtprio limit allows"
+                    " SCHED_FIFO (docs/live.md)"
+                )
+            return self
+        self._saved = saved
+        return self
+
+    def __exit__(self, *exc) -> None:
+        saved, self._saved = self._saved, None
+        if saved is not None:
+            with contextlib.suppress(OSError):  # back to what it was: always permitted
+                os.sched_setscheduler(0, *saved)
