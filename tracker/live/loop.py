@@ -171,8 +171,8 @@ class LiveTracker:
         process's other threads and child processes off it
         (:class:`~tracker.live.affinity.LoopAffinity`; Linux, two processors or more).
     realtime : bool
-        Each frame's step at a real-time priority during the run, where permitted
-        (:class:`~tracker.live.priority.FramePriority`).
+        Each frame's step at a real-time priority during the run, where permitted and the
+        loop is pinned (:class:`~tracker.live.priority.FramePriority`).
     keep_awake : bool
         During :meth:`run`, keep the processors out of their deep sleep states, which lose
         the caches between frames (:class:`~tracker.live.wake.WakeLatency`; Linux, needs
@@ -230,8 +230,7 @@ class LiveTracker:
             self.add_sink(sink)
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
         self.age, self.latency, self.cycle = (LatencyRecorder() for _ in range(3))
-        # Where a frame's time goes, up to the estimate (the summary's ``stage_ms``).
-        self.stages = {name: LatencyRecorder() for name in STAGES}
+        self.stages = {name: LatencyRecorder() for name in STAGES}  # summary's stage_ms
         self._last_time_s: float | None = None
         self._last_arrival_s: float | None = None
         self._odd_times: list[float] = []  # consecutive frames rejected for their time
@@ -660,7 +659,8 @@ class LiveTracker:
                 self.affinity.apply(() if capture is None else (capture.thread_id,))
             if self.wake is not None:
                 self.summary.kept_awake = self.wake.hold()
-            self.summary.realtime = self._priority.start() if self.realtime else None
+            pinned = self.affinity is not None and self.affinity.active
+            self.summary.realtime = self._priority.start() if self.realtime and pinned else None
             self.collection.hold()
             if self._capture is not None:
                 poll_s = self._capture.poll_s

@@ -16,6 +16,10 @@ kernel's real-time throttling (by default 95% of each second) would still leave 
 share if the work of a frame never ended. Threads and processes started meanwhile do not
 inherit it (``SCHED_RESET_ON_FORK``).
 
+The live loop raises its step only when its thread has a processor of its own
+(:class:`~tracker.live.affinity.LoopAffinity`): polling at a real-time priority for the
+worker's answer on the processor the worker shares would keep the worker off it.
+
 Raising a thread's policy needs ``CAP_SYS_NICE`` or an ``rtprio`` resource limit (e.g.
 ``@realtime - rtprio 10`` in ``/etc/security/limits.conf``): without it the first frame
 reports once that the work runs at the ordinary priority, and nothing else changes.
