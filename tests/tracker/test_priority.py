@@ -16,6 +16,7 @@ from replay.simulation.sources import simulated_session
 from tracker.estimators import make_estimator
 from tracker.live.loop import LiveTracker
 from tracker.live.priority import PRIORITY, FramePriority
+from tracker.live.sinks import MemorySink
 from tracker.reconstruction import Reconstructor
 
 pytestmark = pytest.mark.skipif(
@@ -66,6 +67,24 @@ def test_inside_the_thread_is_real_time_and_threads_started_there_are_not():
     assert (policy(), os.sched_getparam(0).sched_priority) == before
 
 
+def test_a_thread_with_a_real_time_policy_of_its_own_keeps_it():
+    """A tracker started with ``chrt -f 20``: its frames are not lowered to priority 1."""
+    if not permitted():
+        pytest.fail("this test needs SCHED_FIFO: run as root or with an rtprio limit")
+    own = {}
+
+    def thread():
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(20))
+        with FramePriority():
+            own["inside"] = policy(), os.sched_getparam(0).sched_priority
+        own["after"] = policy(), os.sched_getparam(0).sched_priority
+
+    worker = threading.Thread(target=thread)
+    worker.start()
+    worker.join()
+    assert own["inside"] == own["after"] == (os.SCHED_RR, 20)
+
+
 def test_off_or_refused_it_changes_nothing_and_a_refusal_is_said_once(monkeypatch):
     with FramePriority(enabled=False):
         assert policy() == os.SCHED_OTHER
@@ -81,19 +100,19 @@ def test_off_or_refused_it_changes_nothing_and_a_refusal_is_said_once(monkeypatc
     assert not priority.enabled
 
 
-class PolicySink:
-    """Records the scheduling policy of the thread that hands it each frame (the loop's)."""
+class PolicySink(MemorySink):
+    """Also records the scheduling policy of the thread that hands it each frame (the
+    loop's)."""
 
     name = "policy"
 
     def __init__(self):
+        super().__init__()
         self.policies = []
 
-    def handle(self, frame, observation, estimate, latency_s, status):
+    def handle(self, *args, **kwargs):
         self.policies.append(policy())
-
-    def close(self):
-        pass
+        super().handle(*args, **kwargs)
 
 
 def run_loop(realtime: bool, report=None, pin: bool = True):
@@ -106,6 +125,7 @@ def run_loop(realtime: bool, report=None, pin: bool = True):
         report=report or (lambda line: None),
     )  # fmt: skip
     summary = tracker.run(session.frames, handle_signals=False)
+    assert sink.closed and len(sink.results) == len(sink.policies)
     return summary, sink.policies
 
 

@@ -14,7 +14,8 @@ loop from a frame's arrival to the end of its step, the segmentation worker from
 to its answer. A few milliseconds in fifty, so the others lose no more than that; the
 kernel's real-time throttling (by default 95% of each second) would still leave them their
 share if the work of a frame never ended. Threads and processes started meanwhile do not
-inherit it (``SCHED_RESET_ON_FORK``).
+inherit it (``SCHED_RESET_ON_FORK``). A thread that already has a real-time policy (the
+whole tracker started with ``chrt``) keeps its own.
 
 The live loop raises its step only when its thread has a processor of its own
 (:class:`~tracker.live.affinity.LoopAffinity`): polling at a real-time priority for the
@@ -36,6 +37,11 @@ PRIORITY = 1  # the lowest real-time priority
 
 def _supported() -> bool:
     return all(hasattr(os, name) for name in ("sched_setscheduler", "SCHED_FIFO"))
+
+
+# Policies a thread may already have from its user (``chrt``): left as they are.
+_REAL_TIME = tuple(getattr(os, name) for name in ("SCHED_FIFO", "SCHED_RR") if hasattr(os, name))
+_RESET_ON_FORK = getattr(os, "SCHED_RESET_ON_FORK", 0)
 
 
 class FramePriority:
@@ -61,11 +67,10 @@ class FramePriority:
         self._saved: tuple[int, os.sched_param] | None = None
 
     def start(self) -> bool:
-        """Turn it on; whether the system allows it (tried once now: raised and lowered
-        again, and reported if refused)."""
+        """Turn it on; whether the system allows it (tried once now: raised and put back,
+        and reported if refused)."""
         self.enabled = _supported()
-        with self:
-            pass
+        self._restore(self._raise())
         return self.enabled
 
     def stop(self) -> None:
@@ -73,12 +78,24 @@ class FramePriority:
         self.enabled = False
 
     def __enter__(self) -> FramePriority:
+        self._saved = self._raise()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        saved, self._saved = self._saved, None
+        self._restore(saved)
+
+    def _raise(self) -> tuple[int, os.sched_param] | None:
+        """Raise the calling thread; what to put back (None: nothing was changed, because
+        it is off, refused, or the thread already has a real-time policy of its own, e.g.
+        from ``chrt``, which it keeps)."""
         if not self.enabled:
-            return self
+            return None
         try:
             saved = os.sched_getscheduler(0), os.sched_getparam(0)
-            policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
-            os.sched_setscheduler(0, policy, os.sched_param(PRIORITY))
+            if (saved[0] & ~_RESET_ON_FORK) in _REAL_TIME:
+                return None
+            os.sched_setscheduler(0, os.SCHED_FIFO | _RESET_ON_FORK, os.sched_param(PRIORITY))
         except OSError as exc:  # not permitted (no CAP_SYS_NICE, no rtprio limit)
             self.enabled = False
             self.refused = str(exc)
@@ -88,12 +105,11 @@ class FramePriority:
                     " processor can hold it up; CAP_SYS_NICE or an rtprio limit allows"
                     " SCHED_FIFO (docs/live.md)"
                 )
-            return self
-        self._saved = saved
-        return self
+            return None
+        return saved
 
-    def __exit__(self, *exc) -> None:
-        saved, self._saved = self._saved, None
+    @staticmethod
+    def _restore(saved: tuple[int, os.sched_param] | None) -> None:
         if saved is not None:
             with contextlib.suppress(OSError):  # back to what it was: always permitted
                 os.sched_setscheduler(0, *saved)
