@@ -6,7 +6,9 @@ more on calling its routines for arrays of a few elements than on the arithmetic
 :func:`triangulate` and :func:`propagate` are the arithmetic of
 :meth:`models.imaging.Rig.reconstruct` and :meth:`models.imaging.Rig.reconstruction_covariance`
 for cameras without distortion (the rig's own Notes give the formulas), one point at a time.
-Compiled once on a machine and cached next to this file.
+:func:`distorted_pixel` is ``cv2.projectPoints`` for one point in a camera's frame, for the
+compiled steps that project (the epipolar check, single views' predictions). Compiled once
+on a machine and cached next to this file.
 """
 
 from __future__ import annotations
@@ -144,6 +146,22 @@ def propagate(x, cov, R_cam_w, t_cam_w, inverse_focal):
     return out, behind
 
 
+@numba.njit(cache=True, nogil=True)
+def distorted_pixel(X, Y, Z, intrinsics, k):
+    """The pixel (u, v) of a point (X, Y, Z) in a camera's frame, mm, as
+    ``cv2.projectPoints`` computes it: divided by its depth (1 where the depth is 0),
+    distorted (``k``: k1, k2, p1, p2, k3) and scaled (``intrinsics``: fx, fy, cx, cy, px)."""
+    z = 1.0 / Z if Z != 0.0 else 1.0
+    x = X * z
+    y = Y * z
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * (r4 * r2)
+    xd = x * cdist + k[2] * (2.0 * x * y) + k[3] * (r2 + 2.0 * x * x)
+    yd = y * cdist + k[2] * (r2 + 2.0 * y * y) + k[3] * (2.0 * x * y)
+    return xd * intrinsics[0] + intrinsics[2], yd * intrinsics[1] + intrinsics[3]
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) the kernels once per process, with the types the rig
@@ -162,4 +180,4 @@ def warm_up() -> None:
               frozen(np.broadcast_to(np.eye(2), (2, 2, 2)).copy()))  # fmt: skip
 
 
-__all__ = ["propagate", "triangulate", "warm_up"]
+__all__ = ["distorted_pixel", "propagate", "triangulate", "warm_up"]

@@ -25,6 +25,8 @@ import math
 import numba
 import numpy as np
 
+from models._imaging_kernels import distorted_pixel as _distorted_pixel
+
 
 @numba.njit(cache=True, nogil=True)
 def horizontal_radius(c, present, n_positions):
@@ -233,8 +235,8 @@ def view_projections(angle, C, A, t, intrinsics, dist, pinhole):
     """The image points of model vectors turned about z_b by each angle.
 
     Point g of angle i is ``A_g Rz(angle_i) C_g + t_g`` in its camera's frame, then, for a
-    pinhole camera, divided by its depth and distorted as ``cv2.projectPoints`` does (k1,
-    k2, p1, p2, k3) and scaled by the intrinsics; for an orthographic plane its first two
+    pinhole camera, divided by its depth, distorted and scaled as ``cv2.projectPoints`` does
+    (:func:`models._imaging_kernels.distorted_pixel`); for an orthographic plane its first two
     coordinates are the image's (mm).
 
     Parameters
@@ -277,17 +279,7 @@ def view_projections(angle, C, A, t, intrinsics, dist, pinhole):
                 continue
             Z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[g, 2]
             least_depth = min(least_depth, Z)
-            z = 1.0 / Z if Z != 0.0 else 1.0
-            x = X * z
-            y = Y * z
-            k = dist[g]
-            r2 = x * x + y * y
-            r4 = r2 * r2
-            cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * (r4 * r2)
-            xd = x * cdist + k[2] * (2.0 * x * y) + k[3] * (r2 + 2.0 * x * x)
-            yd = y * cdist + k[2] * (r2 + 2.0 * y * y) + k[3] * (2.0 * x * y)
-            out[i, g, 0] = xd * intrinsics[g, 0] + intrinsics[g, 2]
-            out[i, g, 1] = yd * intrinsics[g, 1] + intrinsics[g, 3]
+            out[i, g, 0], out[i, g, 1] = _distorted_pixel(X, Y, Z, intrinsics[g], dist[g])
     return out, least_depth
 
 

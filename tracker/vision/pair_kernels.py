@@ -35,6 +35,8 @@ import math
 import numba
 import numpy as np
 
+from models._imaging_kernels import distorted_pixel as _distorted_pixel
+
 # Rows of a view's tip band data (``band`` below), each of two numbers.
 BAND_PX, BAND_DIRECTION, BAND_EXTENT_RADIUS, BAND_COV = 0, 1, 2, 3
 BAND_ROWS = 5  # the covariance takes rows 3 and 4
@@ -88,15 +90,7 @@ def _project(R, t, intrinsics, k, x0, x1, x2):
     X = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[0]
     Y = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[1]
     Z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[2]
-    z = 1.0 / Z if Z != 0.0 else 1.0
-    x = X * z
-    y = Y * z
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * (r4 * r2)
-    xd = x * cdist + k[2] * (2.0 * x * y) + k[3] * (r2 + 2.0 * x * x)
-    yd = y * cdist + k[2] * (r2 + 2.0 * y * y) + k[3] * (2.0 * x * y)
-    return xd * intrinsics[0] + intrinsics[2], yd * intrinsics[1] + intrinsics[3]
+    return _distorted_pixel(X, Y, Z, intrinsics, k)
 
 
 @numba.njit(cache=True, nogil=True)
