@@ -1,5 +1,5 @@
 """What the segmentation tests (``test_segmentation.py``, ``test_segmentation_kernels.py``,
-``test_parallel.py``, ``test_view_record.py``) share: the catheter's base, a rendered scene
+``test_parallel.py``, ``test_view_record.py``, ``test_priority.py``) share: the catheter's base, a rendered scene
 (catheter, rig, renderer), a bent configuration, and the comparison of two views' results
 field by field."""
 
@@ -23,6 +23,21 @@ def scene():
 
 
 Q_BENT = np.array([0.8, 0.7, 0.5])
+
+
+def flickering_scene(seed: int, vibration_px: float):
+    """The default scene's catheter, scene and a renderer whose frames flicker (10% gain)
+    and vibrate (``vibration_px``): what the live loop's segmenters must handle."""
+    from replay.simulation.render import ImagingNuisance
+    from replay.simulation.simulator import default_scene
+
+    catheter = default_catheter()
+    scene = default_scene(catheter, default_render_rig())
+    renderer = Renderer(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=seed,
+        nuisance=ImagingNuisance(gain_flicker=0.1, vibration_px=vibration_px),
+    )  # fmt: skip
+    return catheter, scene, renderer
 
 
 def view_fields(view) -> list:

@@ -10,10 +10,11 @@ from multiprocessing import shared_memory
 import numpy as np
 import pytest
 
-from models.catheter import default_catheter
-from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
-from replay.simulation.simulator import default_scene
-from tests.tracker.segmentation_common import assert_same, assert_same_views
+from tests.tracker.segmentation_common import (
+    assert_same,
+    assert_same_views,
+    flickering_scene,
+)
 from tracker.vision import parallel
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.parallel import MAX_POINTS, ParallelPairSegmenter, pair_segmenter
@@ -23,12 +24,7 @@ N_PAIRS = 14
 
 @pytest.fixture(scope="module")
 def setup():
-    catheter = default_catheter()
-    scene = default_scene(catheter, default_render_rig())
-    renderer = Renderer(
-        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=3,
-        nuisance=ImagingNuisance(gain_flicker=0.1, vibration_px=0.3),
-    )  # fmt: skip
+    catheter, scene, renderer = flickering_scene(3, 0.3)
     rng = np.random.default_rng(3)
     qs = np.column_stack(
         [np.linspace(0, 1, N_PAIRS), np.linspace(0.8, -0.6, N_PAIRS), np.full(N_PAIRS, 0.7)]

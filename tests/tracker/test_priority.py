@@ -11,7 +11,6 @@ import time
 import numpy as np
 import pytest
 
-from models.catheter import default_catheter
 from replay.simulation.sources import simulated_session
 from tracker.estimators import make_estimator
 from tracker.live.loop import LiveTracker
@@ -153,13 +152,10 @@ def test_the_loop_steps_each_frame_at_real_time_priority_and_then_lets_go(monkey
 def _worker_policies(realtime: bool, frames: int = 40) -> set[int]:
     """The segmentation worker's scheduling policies seen while it segments ``frames``
     pairs (its main thread's, read from /proc as often as the sampler can)."""
-    from replay.simulation.render import Renderer, default_render_rig
-    from replay.simulation.simulator import default_scene
+    from tests.tracker.segmentation_common import flickering_scene
     from tracker.vision.parallel import ParallelPairSegmenter
 
-    catheter = default_catheter()
-    scene = default_scene(catheter, default_render_rig())
-    renderer = Renderer(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=3)
+    catheter, scene, renderer = flickering_scene(3, 0.3)
     rng = np.random.default_rng(3)
     pairs = [renderer.render(np.array([0.2 * k, 0.6, 0.5]), 0.4, rng).images for k in range(4)]
     seen: set[int] = set()

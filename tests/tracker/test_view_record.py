@@ -9,10 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from models.catheter import default_catheter
-from replay.simulation.render import ImagingNuisance, Renderer, default_render_rig
-from replay.simulation.simulator import default_scene
-from tests.tracker.segmentation_common import assert_same_views
+from tests.tracker.segmentation_common import assert_same_views, flickering_scene
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.segmentation import SegmentationFlag
 from tracker.vision.view_record import read_views, view_size, write_views
@@ -21,12 +18,7 @@ from tracker.vision.view_record import read_views, view_size, write_views
 @pytest.fixture(scope="module")
 def views():
     """Views as a pair segmenter gives them, and the variants a frame may bring."""
-    catheter = default_catheter()
-    scene = default_scene(catheter, default_render_rig())
-    renderer = Renderer(
-        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, seed=5,
-        nuisance=ImagingNuisance(gain_flicker=0.1, vibration_px=0.4),
-    )  # fmt: skip
+    catheter, scene, renderer = flickering_scene(5, 0.4)
     pair = PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds)
     rng = np.random.default_rng(5)
     out = []
