@@ -1,7 +1,7 @@
 """What the segmentation tests (``test_segmentation.py``, ``test_segmentation_kernels.py``,
-``test_parallel.py``, ``test_view_record.py``, ``test_priority.py``) share: the catheter's base, a rendered scene
-(catheter, rig, renderer), a bent configuration, and the comparison of two views' results
-field by field."""
+``test_parallel.py``, ``test_view_record.py``, ``test_priority.py``) share: the catheter's
+base, a rendered scene (catheter, rig, renderer; one that flickers and vibrates), a bent
+configuration, and the comparison of two views' results field by field."""
 
 import dataclasses
 
