@@ -59,10 +59,16 @@ class Joints:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.next = 0
 
+    rates = True  # False: datagrams without rates (NO_RATES), the receiver derives them
+
     def send_until(self, time_s):
         while self.next / JOINT_RATE_HZ <= time_s + 1e-9:
             t = self.next / JOINT_RATE_HZ
-            self.sock.sendto(encode_joints(self.next, t, *session_joints(t)), self.receiver.address)
+            q, q_dot = session_joints(t)
+            self.sock.sendto(
+                encode_joints(self.next, t, q, q_dot if self.rates else None),
+                self.receiver.address,
+            )
             self.next += 1
 
     def close(self):
@@ -209,13 +215,16 @@ def test_priming_prepares_the_estimator_s_model_at_the_frame_s_joints(session, j
     tracker.close()
 
 
-def test_joints_held_for_late_datagrams_are_moved_on_at_their_rates(session, joints):
+@pytest.mark.parametrize("rates", [True, False])
+def test_joints_held_for_late_datagrams_are_moved_on_at_their_rates(session, joints, rates):
     """A frame whose newest joint datagram is older than the image (the controller late by
     a few ms) takes the newest values moved on at their rates to the image time: within
     the motion's second order of the truth, where the values held would be off by the rate
-    times the delay. Past the hold (20 ms) the frame is flagged and predicts only."""
+    times the delay; also from a controller that sends no rates (the receiver's, from the
+    values). Past the hold (20 ms) the frame is flagged and predicts only."""
     from tracker.live.sinks import LiveStatus
 
+    joints.rates = rates
     segmenter, memory = StandInSegmenter(session.frames), MemorySink()
     tracker = loop_of(session, joints, segmenter, memory)
     for k in range(3):
