@@ -189,3 +189,45 @@ def test_the_worker_segments_each_frame_at_real_time_priority():
     if permitted():
         assert fifo in _worker_policies(True)
     assert fifo not in _worker_policies(False)
+
+
+def _worker_waiting_after_a_rehearsal(realtime: bool) -> tuple[set[str], set[int]]:
+    """The worker's states and scheduling policies, read from /proc for 60 ms after a
+    frame and a rehearsal (the next frame due within milliseconds)."""
+    from tests.tracker.segmentation_common import flickering_scene
+    from tracker.vision.parallel import ParallelPairSegmenter
+
+    catheter, scene, renderer = flickering_scene(3, 0.3)
+    images = renderer.render(np.array([0.2, 0.6, 0.5]), 0.4, np.random.default_rng(3)).images
+    states: set[str] = set()
+    policies: set[int] = set()
+    with ParallelPairSegmenter(
+        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
+        realtime=realtime,
+    ) as segmenter:  # fmt: skip
+        assert segmenter.parallel
+        segmenter.segment(images)
+        segmenter.rehearse(images)
+        time.sleep(0.01)  # the rehearsal done
+        stat = f"/proc/{segmenter._process.pid}/stat"
+        until = time.monotonic() + 0.06
+        while time.monotonic() < until:
+            with open(stat) as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            states.add(fields[0])
+            policies.add(int(fields[38]))
+            time.sleep(0.001)
+        segmenter.segment(images)  # and it still answers
+    return states, policies
+
+
+def test_the_worker_waits_for_the_frame_blocked_at_real_time_priority():
+    """Where permitted, the worker sleeps at SCHED_FIFO until the request wakes it (ahead of
+    ordinary threads on its processor); without it, it polls at the ordinary priority."""
+    if permitted():
+        states, policies = _worker_waiting_after_a_rehearsal(True)
+        assert policies == {os.SCHED_FIFO}
+        assert states == {"S"}
+    states, policies = _worker_waiting_after_a_rehearsal(False)
+    assert policies == {os.SCHED_OTHER}
+    assert "R" in states  # polling

@@ -16,8 +16,9 @@ marked done by a sequence number written last; a pipe wakes the side that waits.
 request but a rehearsal waits for its answer, so that the next can only replace a rehearsal
 the worker has not taken up yet (which then does not happen: it changes nothing). The
 caller polls for an answer (up to :data:`SPIN_S`) before it blocks: a blocked thread on a
-busy machine waits for a time slice of whatever else runs on its processor once woken; the
-worker blocks between requests. The results are those of :class:`PairSegmenter`
+busy machine waits for a time slice of whatever else runs on its processor once woken. The
+worker blocks between requests, at a real-time priority where permitted (woken, it runs at
+once), else polling for a while after a rehearsal. The results are those of :class:`PairSegmenter`
 on the same frames, bit for bit (``tests/tracker/test_parallel.py``). A worker that fails
 to start, dies or stops answering is reported once and its views are segmented in the
 calling process from then on (their background models started again from the backgrounds
@@ -58,9 +59,10 @@ ANSWER_TIMEOUT_S = 2.0  # a worker that takes longer over one request is taken f
 # machine waits for its processor again when the answer comes (a time slice of the other
 # process there), which costs more than polling.
 SPIN_S = 0.02
-# How long the worker polls for the frame after a rehearsal before it blocks, s: the frame is
-# due some 3 ms later, and a worker that blocks must then be woken and scheduled again on a
-# processor that the loop's other threads and processes share.
+# How long the worker polls for the frame after a rehearsal before it blocks, s, where it may
+# not wait at a real-time priority: the frame is due some 3 ms later, and a worker that blocks
+# at the ordinary priority must then wait its turn on a processor that the loop's other
+# threads and processes share. Where it may, it blocks at that priority (:func:`_work`).
 REHEARSAL_SPIN_S = 0.02
 MAX_POINTS = 64  # predicted points per view passed as they are (more: their bounding box)
 _SLOTS = 2  # image slots per view: a request never writes the slot of the one before
@@ -677,11 +679,17 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
     wake.send_bytes(b"")
     spin_until = 0.0
     while True:
+        # Waiting for a request at the frame's priority, blocked: the request's bell then
+        # wakes the worker ahead of any ordinary thread on its processor, which it would
+        # otherwise wait for (2.5 ms has been seen), and it costs no processor time meanwhile.
+        waiting = contextlib.ExitStack()
+        waiting.enter_context(priority)
         while control[_REQUEST] == seen:
-            # After a rehearsal the frame is due within milliseconds: poll for it, giving
-            # the processor at once to anything else that is ready (the demo's controller
-            # shares it: held off by the poll, its joint datagrams came 3-5 ms late).
-            if time.monotonic() < spin_until:
+            # Without that priority: after a rehearsal the frame is due within milliseconds,
+            # so poll for it, giving the processor at once to anything else that is ready
+            # (the demo's controller shares it: held off by the poll, its joint datagrams
+            # came 3-5 ms late).
+            if not priority.enabled and time.monotonic() < spin_until:
                 _yield()
                 continue
             if wake.poll(1.0):
@@ -692,8 +700,10 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
         seen = int(control[_REQUEST])
         kind, slot = int(control[_KIND]), int(control[_SLOT])
         spin_until = 0.0
+        if kind != _SEGMENT:
+            waiting.close()  # the rest at the ordinary priority
         if kind == _SEGMENT:
-            with priority:
+            with waiting:  # the frame's priority until its answer is out
                 try:
                     views = tuple(
                         camera.in_camera_frame(
