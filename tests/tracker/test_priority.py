@@ -192,8 +192,8 @@ def test_the_worker_segments_each_frame_at_real_time_priority():
 
 
 def _worker_waiting_after_a_rehearsal(realtime: bool) -> tuple[set[str], set[int]]:
-    """The worker's states and scheduling policies, read from /proc for 60 ms after a
-    frame and a rehearsal (the next frame due within milliseconds)."""
+    """The worker's states and scheduling policies, read from /proc for 60 ms once it has
+    segmented a frame and rehearsed (polling for the next frame, if it does, for 1 s)."""
     from tests.tracker.segmentation_common import flickering_scene
     from tracker.vision.parallel import ParallelPairSegmenter
 
@@ -203,12 +203,12 @@ def _worker_waiting_after_a_rehearsal(realtime: bool) -> tuple[set[str], set[int
     policies: set[int] = set()
     with ParallelPairSegmenter(
         catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
-        realtime=realtime,
+        realtime=realtime, worker_poll_s=1.0,
     ) as segmenter:  # fmt: skip
         assert segmenter.parallel
         segmenter.segment(images)
         segmenter.rehearse(images)
-        time.sleep(0.01)  # the rehearsal done
+        time.sleep(0.1)  # the rehearsal done
         stat = f"/proc/{segmenter._process.pid}/stat"
         until = time.monotonic() + 0.06
         while time.monotonic() < until:
