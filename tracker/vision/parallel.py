@@ -700,8 +700,6 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
         seen = int(control[_REQUEST])
         kind, slot = int(control[_KIND]), int(control[_SLOT])
         spin_until = 0.0
-        if kind != _SEGMENT:
-            waiting.close()  # the rest at the ordinary priority
         if kind == _SEGMENT:
             with waiting:  # the frame's priority until its answer is out
                 try:
@@ -721,7 +719,9 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()
             collection.collect()  # and the garbage collection due, as in the loop
-        elif kind == _REHEARSE:
+            continue
+        waiting.close()  # anything but a frame at the ordinary priority
+        if kind == _REHEARSE:
             # A rehearsal changes nothing; what is wrong with its images, the frame's own
             # segmentation reports.
             with contextlib.suppress(Exception):
