@@ -399,6 +399,54 @@ def test_the_background_update_waits_until_the_estimate_has_left(session, joints
     tracker.close()
 
 
+class OverlappingSegmenter(SettlingSegmenter):
+    """Takes ``meanwhile`` as :class:`ParallelPairSegmenter` does: its own view, then the
+    caller's work, then the view segmented elsewhere (not called with ``calls_it`` False)."""
+
+    def __init__(self, frames, calls, calls_it=True):
+        super().__init__(frames, calls)
+        self.calls_it = calls_it
+
+    def segment(self, images, predicted_px=None, settle=True, meanwhile=None):
+        self.calls.append(f"own view, settle={settle}")
+        if meanwhile is not None and self.calls_it:
+            meanwhile()
+        self.calls.append("other view")
+        return StandInSegmenter.segment(self, images, predicted_px)
+
+
+@pytest.mark.parametrize("calls_it", [True, False])
+def test_the_joints_are_read_while_the_segmenter_waits_for_its_other_view(
+    session, joints, calls_it
+):
+    """With a segmenter that takes ``meanwhile``, the joints are read between its own view
+    and the other one's answer; the frames get the same joint values and estimates as with
+    one that reads them after. One that never calls it gets them read after, as before."""
+    calls, reference_calls = [], []
+    receiver = joints.receiver
+    sample = receiver.sample
+    receiver.sample = lambda time_s: calls.append("joints") or sample(time_s)
+    tracker = loop_of(
+        session, joints, OverlappingSegmenter(session.frames, calls, calls_it), CallSink(calls)
+    )
+    reference_joints = Joints()
+    reference = loop_of(
+        session, reference_joints, SettlingSegmenter(session.frames, reference_calls),
+        CallSink(reference_calls),
+    )  # fmt: skip
+    for k in range(4):
+        got = step(tracker, session, joints, k, received_s=None)
+        want = step(reference, session, reference_joints, k, received_s=None)
+        np.testing.assert_array_equal(got.frame.q, want.frame.q)
+        np.testing.assert_array_equal(got.frame.q_dot, want.frame.q_dot)
+        assert got.estimate.delta_L_rad == want.estimate.delta_L_rad
+    inner = ["joints", "other view"] if calls_it else ["other view", "joints"]
+    assert calls == ["own view, settle=False", *inner, "estimate sent", "settle"] * 4
+    tracker.close()
+    reference.close()
+    reference_joints.close()
+
+
 def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
     """The loop waits for a frame at most until priming must start: the priming's running
     time plus the lead before the frame is due, so that it never holds up the frame."""

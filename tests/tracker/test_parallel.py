@@ -96,6 +96,42 @@ def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
         np.testing.assert_array_equal(a, b)
 
 
+def test_the_callers_work_runs_once_between_its_own_view_and_the_workers_answer(setup):
+    """``meanwhile`` runs once a frame, after this process's view and before the worker's
+    answer is taken (in one process, before the views are combined); the results are those
+    of a segmentation without it, and work that raises leaves the worker in step."""
+    pairs = setup[3]
+    reference, alone = make(setup, PairSegmenter), make(setup, PairSegmenter)
+    with make(setup, ParallelPairSegmenter) as worked:
+        events = []
+        answer = worked._answer
+        worked._answer = lambda *a: events.append("answer") or answer(*a)
+        camera = worked.local.cameras[0]
+        own = camera.segment
+        camera.segment = lambda *a, **kw: events.append("own view") or own(*a, **kw)
+        calls = []
+        for k in range(4):
+            expected = reference.segment(pairs[k], regions(setup, k))
+            got = worked.segment(
+                pairs[k], regions(setup, k), meanwhile=lambda: events.append("meanwhile")
+            )
+            assert_same_results([expected], [got])
+            got = alone.segment(pairs[k], regions(setup, k), meanwhile=lambda k=k: calls.append(k))
+            assert_same_results([expected], [got])
+        assert events == ["own view", "meanwhile", "answer"] * 4
+        assert calls == [0, 1, 2, 3]
+        assert worked.parallel and worked.frames_here == 0
+
+        def fails():
+            raise RuntimeError("the caller's work failed")
+
+        reference.segment(pairs[4])
+        with pytest.raises(RuntimeError, match="the caller's work failed"):
+            worked.segment(pairs[4], meanwhile=fails)
+        assert_same_results([reference.segment(pairs[5])], [worked.segment(pairs[5])])
+        assert worked.parallel, worked.worker_failure
+
+
 def test_a_worker_that_dies_is_reported_once_and_its_views_are_segmented_here(setup):
     pairs = setup[3]
     lines = []

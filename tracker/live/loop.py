@@ -44,8 +44,9 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from inspect import signature
 
 import cv2
 import numpy as np
@@ -59,7 +60,7 @@ from tracker.live.pacing import FramePace, PrimeTiming
 from tracker.live.priority import FramePriority
 from tracker.live.signals import StopRequest
 from tracker.live.sinks import INVALID, PREDICT_ONLY, LiveResult, LiveStatus, QueuedSink, Sink
-from tracker.live.sources import NewestOnly
+from tracker.live.sources import NewestOnly, arrivals
 from tracker.live.summary import LatencyRecorder, LiveSummary
 from tracker.live.wake import WakeLatency
 from tracker.reconstruction import Reconstructor
@@ -98,12 +99,6 @@ class _SinkEntry:
     enabled: bool = True
 
 
-def _arrivals(source: Iterable, clock: Callable[[], float]) -> Iterator:
-    """(item, the time it left the source) of every item; ``None`` as it comes."""
-    for item in source:
-        yield None if item is None else (item, clock())
-
-
 _JOINT_STATUS = {
     JointStatus.OK: LiveStatus.NONE,
     JointStatus.HELD: LiveStatus.NONE,  # up to the loop's hold; past it, extrapolated
@@ -140,7 +135,8 @@ class LiveTracker:
         last frame's estimate was sent and again when the frame is due (:meth:`prime`).
         A segmenter with ``settle()`` is called ``segment(images, predicted_px,
         settle=False)`` and settled once the estimate has left: the update of its
-        background models is off the critical path.
+        background models is off the critical path. One whose ``segment`` takes
+        ``meanwhile`` reads the joints then, while it waits for a view segmented elsewhere.
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -215,6 +211,8 @@ class LiveTracker:
         self.prime_lead_s = prime_lead_s
         self.rehearse = rehearse and callable(getattr(segmenter, "rehearse", None))
         self._settles = callable(getattr(segmenter, "settle", None))
+        # One that can read the joints while it waits for a view segmented elsewhere.
+        self._overlaps = self._settles and "meanwhile" in signature(segmenter.segment).parameters
         self.affinity = LoopAffinity() if pin else None
         self.wake = WakeLatency(report=report) if keep_awake else None
         self.realtime = realtime
@@ -450,16 +448,18 @@ class LiveTracker:
             0.8 * self._rehearsal_s + 0.2 * took
         )
 
-    def _segment(self, time_s: float, images) -> SegmentedMarkers:
+    def _segment(self, time_s: float, images, frame) -> tuple[SegmentedMarkers, list]:
+        """The markers, and the joints if read while the segmenter waited (else [])."""
         self._last_images = images
         predicted = self._region_for(time_s)
-        if self._settles:
-            seg = self.segmenter.segment(images, predicted, settle=False)
-        elif predicted is None:
+        joints, options = [], {"settle": False} if self._settles else {}
+        if self._overlaps:
+            options["meanwhile"] = lambda: joints.append(self._joints_at(time_s, frame))
+        if predicted is None and not options:
             seg = self.segmenter.segment(images)
         else:
-            seg = self.segmenter.segment(images, predicted)
-        return SegmentedMarkers(time_s, tuple(seg.uv), tuple(seg.cov))
+            seg = self.segmenter.segment(images, predicted, **options)
+        return SegmentedMarkers(time_s, tuple(seg.uv), tuple(seg.cov)), joints
 
     def step(self, item, received_s: float | None = None) -> LiveResult | None:
         """Process one source item; None when it was dropped (counted in ``summary``).
@@ -497,11 +497,11 @@ class LiveTracker:
         try:
             # Segmentation first: it needs no joint values (its region was predicted after
             # the last frame), and the joints received meanwhile are drained with the rest.
-            markers = self._segment(time_s, item[1]) if is_images else item
+            markers, joints = self._segment(time_s, item[1], frame) if is_images else (item, [])
             segmented_s = self.monotonic()
             if is_images:
                 self.stages["segmentation"].add(segmented_s - now)
-            q, q_dot, status = self._joints_at(time_s, frame)
+            q, q_dot, status = joints[0] if joints else self._joints_at(time_s, frame)
             if frame is None:
                 frame = markers.frame(q, q_dot)
                 if is_images:
@@ -666,7 +666,7 @@ class LiveTracker:
                 poll_s = self._capture.poll_s
                 entries = self._capture.items(lambda: self.wait_s(self.monotonic(), poll_s))
             else:
-                entries = _arrivals(source, self.monotonic)
+                entries = arrivals(source, self.monotonic)
             while True:
                 if stop.requested:
                     reason = "interrupted"

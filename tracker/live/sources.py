@@ -56,6 +56,13 @@ class ImageSet(NamedTuple):
 Item = ImageSet | SegmentedMarkers | Frame | None
 
 
+def arrivals(source: Iterable, clock: Callable[[], float]) -> Iterator:
+    """(item, the time it left the source) of every item of a source the loop takes in
+    order; ``None`` as it comes."""
+    for item in source:
+        yield None if item is None else (item, clock())
+
+
 # ----------------------------------------------------------------------------- capture
 class NewestOnly:
     """A live source run in its own capture thread; the loop takes only the newest item.

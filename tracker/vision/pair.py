@@ -14,7 +14,7 @@ result maps onto the rows ``[tip, marker_0, ...]`` of each view of
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -333,6 +333,7 @@ class PairSegmenter:
         predicted_px: Sequence[Array | None] | None = None,
         *,
         settle: bool = True,
+        meanwhile: Callable[[], None] | None = None,
     ) -> PairSegmentation:
         """Segment one synchronised frame (one image per view, in the rig's order).
 
@@ -346,6 +347,9 @@ class PairSegmenter:
         settle : bool
             Average the frame into the background models now; with False, at
             :meth:`settle` (see :meth:`CameraSegmenter.segment`).
+        meanwhile : callable, optional
+            Called once with no arguments before the views are combined: work of the
+            caller's that can overlap a view segmented elsewhere (here it just runs).
         """
         if len(images) != len(self.cameras):
             raise ValueError(
@@ -359,6 +363,8 @@ class PairSegmenter:
             camera.in_camera_frame(camera.segment(image, predicted, settle=settle))
             for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True)
         )
+        if meanwhile is not None:
+            meanwhile()
         return combine_views(self.segmenter, views, self.rig)
 
     def settle(self) -> None:

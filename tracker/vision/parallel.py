@@ -384,12 +384,15 @@ class ParallelPairSegmenter:
         predicted_px: Sequence[Array | None] | None = None,
         *,
         settle: bool = True,
+        meanwhile: Callable[[], None] | None = None,
     ) -> PairSegmentation:
-        """Segment one synchronised frame (:meth:`PairSegmenter.segment`)."""
+        """Segment one synchronised frame (:meth:`PairSegmenter.segment`). ``meanwhile`` is
+        called once the caller's own view is done and before the worker's answer is
+        waited for: the caller's work that needs no segmentation overlaps the worker's."""
         self.frames += 1
         if not self.parallel or self.here:
             self.frames_here += self.here
-            pair = self.local.segment(images, predicted_px, settle=settle)
+            pair = self.local.segment(images, predicted_px, settle=settle, meanwhile=meanwhile)
             if settle and self.here:
                 self._between_frames()
             return pair
@@ -404,6 +407,8 @@ class ParallelPairSegmenter:
             first = camera.in_camera_frame(
                 camera.segment(images[0], predicted_px[0], settle=settle)
             )
+            if meanwhile is not None:
+                meanwhile()
         finally:
             own_s = time.monotonic()
             others = self._others(sent, images, predicted_px, settle)
