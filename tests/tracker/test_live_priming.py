@@ -419,9 +419,10 @@ class OverlappingSegmenter(SettlingSegmenter):
 def test_the_joints_are_read_while_the_segmenter_waits_for_its_other_view(
     session, joints, calls_it
 ):
-    """With a segmenter that takes ``meanwhile``, the joints are read between its own view
-    and the other one's answer; the frames get the same joint values and estimates as with
-    one that reads them after. One that never calls it gets them read after, as before."""
+    """With a segmenter that takes ``meanwhile``, the joints are read, and the estimator's
+    model prepared at them, between its own view and the other one's answer; the frames get
+    the same joint values and estimates as with one that reads them after. One that never
+    calls it gets them read after, as before."""
     calls, reference_calls = [], []
     receiver = joints.receiver
     sample = receiver.sample
@@ -429,6 +430,9 @@ def test_the_joints_are_read_while_the_segmenter_waits_for_its_other_view(
     tracker = loop_of(
         session, joints, OverlappingSegmenter(session.frames, calls, calls_it), CallSink(calls)
     )
+    prepared = []
+    prepare = tracker.estimator.prepare
+    tracker.estimator.prepare = lambda q: calls.append("model") or prepared.append(q) or prepare(q)
     reference_joints = Joints()
     reference = loop_of(
         session, reference_joints, SettlingSegmenter(session.frames, reference_calls),
@@ -440,7 +444,10 @@ def test_the_joints_are_read_while_the_segmenter_waits_for_its_other_view(
         np.testing.assert_array_equal(got.frame.q, want.frame.q)
         np.testing.assert_array_equal(got.frame.q_dot, want.frame.q_dot)
         assert got.estimate.delta_L_rad == want.estimate.delta_L_rad
-    inner = ["joints", "other view"] if calls_it else ["other view", "joints"]
+        assert got.estimate.std_rad == want.estimate.std_rad
+        if calls_it:  # the model prepared at the frame's own joints
+            np.testing.assert_array_equal(prepared[-1], got.frame.q)
+    inner = ["joints", "model", "other view"] if calls_it else ["other view", "joints"]
     assert calls == ["own view, settle=False", *inner, "estimate sent", "settle"] * 4
     tracker.close()
     reference.close()

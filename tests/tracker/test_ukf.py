@@ -758,3 +758,34 @@ def test_preparing_the_expansion_changes_no_number_and_ignores_joints_not_finite
     for a, b in zip(prepared.expanded(q), fresh.expanded(q), strict=True):
         assert np.array_equal(a, b)
     assert prepared._nodes.keys() == fresh._nodes.keys()
+
+
+def test_a_prepared_expansion_is_taken_once_and_only_for_exactly_its_joints():
+    """The expansion prepared at q (the frame's joints, while the worker segments) is what
+    the next expanded(q) returns, bit for bit what it computes, once; any other q, or a
+    batch, is computed as before; joints not finite prepare nothing."""
+    from tracker.estimators.deviation import ShapeExpansion
+
+    catheter = default_catheter()
+    q = np.array([[0.3, 0.612345, -0.40321]])
+    near = q + np.array([[0.0, 1e-12, 0.0]])
+    prepared, fresh = ShapeExpansion(catheter), ShapeExpansion(catheter)
+    prepared.prepare(q[0])
+    held = prepared._prepared
+    got = prepared.expanded(q)
+    assert got[0] is held[1] and got[1] is held[2]  # taken, not computed again
+    again = prepared.expanded(q)
+    assert again[0] is not got[0]  # once only
+    for a, b, c in zip(got, again, fresh.expanded(q), strict=True):
+        assert np.array_equal(a, c) and np.array_equal(b, c)
+    prepared.prepare(q[0])
+    for a, b in zip(prepared.expanded(near), fresh.expanded(near), strict=True):
+        assert np.array_equal(a, b)  # not the prepared q: computed, and the right numbers
+    assert prepared._prepared is None  # dropped by that call: never taken later
+    prepared.prepare(q[0])
+    batch = np.concatenate([q, near])
+    for a, b in zip(prepared.expanded(batch), fresh.expanded(batch), strict=True):
+        assert np.array_equal(a, b)
+    prepared.prepare(q[0])
+    prepared.prepare(np.array([0.3, np.nan, 0.1]))  # not finite: nothing, the last dropped
+    assert prepared._prepared is None

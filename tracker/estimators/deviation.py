@@ -11,7 +11,7 @@ and time (:func:`deviation_decay`).
 
 from __future__ import annotations
 
-import math
+import contextlib
 
 import numpy as np
 
@@ -84,6 +84,7 @@ class ShapeExpansion:
         shape_kernels.warm_up()
         measurement_kernels.warm_up()
         self._nodes: dict[tuple[int, int], tuple[Array, Array]] = {}
+        self._prepared: tuple | None = None  # (q, c, [J K]) of the last prepare, once
 
     def _node(self, key: tuple[int, int]) -> tuple[Array, Array]:
         """c and ``[J K]`` (P, 3, 5) at the grid node ``key``."""
@@ -96,13 +97,18 @@ class ShapeExpansion:
         return found
 
     def prepare(self, q: Array) -> None:
-        """Compute the node of joint values q (3,) now, if it is new: the live loop does it
-        while it waits for a frame, with the joints moved on to the frame's time (the
-        joints of a moving catheter reach a new node at most frames, six shape evaluations
-        that would otherwise be part of the frame's latency)."""
-        q_p, q_d = float(q[1]), float(q[2])
-        if math.isfinite(q_p) and math.isfinite(q_d):
-            self._node((round(q_p / self.GRID_MM), round(q_d / self.GRID_MM)))
+        """Compute the expansion at joint values q (3,) now, its node too if it is new: the
+        live loop does it while it waits for a frame, with the joints moved on to the
+        frame's time (the joints of a moving catheter reach a new node at most frames, six
+        shape evaluations that would otherwise be part of the frame's latency), and again
+        with the frame's joints while the worker segments its other view. The next
+        :meth:`expanded` of exactly these q (one configuration) takes it instead of
+        computing it again (the same numbers)."""
+        q = np.array(q, dtype=float)
+        self._prepared = None
+        if q.shape == (3,) and np.isfinite(q).all():
+            with contextlib.suppress(ValueError):  # out of the model's range: step says so
+                self._prepared = (q.tolist(), *self.expanded(q[None]))
 
     def node(self, key: tuple[int, int]) -> tuple[Array, Array, Array]:
         """c, J and K at the grid node ``key`` (its indices in steps of ``GRID_MM``)."""
@@ -127,6 +133,9 @@ class ShapeExpansion:
         """
         q = np.asarray(q, dtype=float)
         if q.shape[0] == 1:
+            prepared, self._prepared = self._prepared, None  # taken once at most
+            if prepared is not None and prepared[0] == q[0].tolist():
+                return prepared[1], prepared[2]
             # One configuration in Python floats (round() rounds half to even, as np.rint).
             q_p, q_d = float(q[0, 1]), float(q[0, 2])
             key = (round(q_p / self.GRID_MM), round(q_d / self.GRID_MM))

@@ -118,7 +118,8 @@ class LiveTracker:
         Frames -> observations in {B} (the registered base and the rig).
     estimator : Estimator
         From :func:`tracker.estimators.make_estimator` (``"ukf"`` for live tracking); one
-        with ``prepare(q)`` is prepared for each frame's joints while the loop primes.
+        with ``prepare(q)`` is prepared for each frame's joints while the loop primes, and
+        again with the frame's while the segmenter waits (``meanwhile``, below).
     sinks : sequence of Sink
         Called in order on the loop's thread (:mod:`tracker.live.sinks`): put the estimate
         sender first, it is the one the latency is for, and every slow output behind a
@@ -136,7 +137,8 @@ class LiveTracker:
         A segmenter with ``settle()`` is called ``segment(images, predicted_px,
         settle=False)`` and settled once the estimate has left: the update of its
         background models is off the critical path. One whose ``segment`` takes
-        ``meanwhile`` reads the joints then, while it waits for a view segmented elsewhere.
+        ``meanwhile`` reads the joints then, while it waits for a view segmented elsewhere
+        (their time is then part of the segmentation stage's).
     report : callable
         Receives one line per new problem (default: stderr).
     monotonic : callable
@@ -150,29 +152,25 @@ class LiveTracker:
         source played back at ``speed`` times real time: that times the time passed; at no
         pace, ``speed=None``, the check is off), s.
     switch_interval_s : float or None
-        The interpreter's thread switch interval during :meth:`run` (None: unchanged). A
-        short one bounds how long the loop waits for the interpreter when another thread
-        (a queued sink, the capture) holds it.
+        The interpreter's thread switch interval during :meth:`run` (None: unchanged): how
+        long the loop may wait for the interpreter held by another thread (a sink).
     cv_threads : int or None
-        OpenCV's worker threads during :meth:`run` (None: unchanged). One: the segmentation
-        of a pair is too short to gain from splitting its image operations, and a split
-        waits for a worker whenever the other cores are busy (sinks, the cameras).
+        OpenCV's threads during :meth:`run` (None: unchanged). One: a pair's image
+        operations are too short to gain from a split, which waits for busy cores.
     prime_lead_s : float or None
         Prime the loop this long before a frame is due (None: never), s; see :meth:`prime`.
     rehearse : bool
         Whether priming also segments the last frame's images again, without changing the
         segmenter (:meth:`prime`; a segmenter without ``rehearse`` is never rehearsed).
     pin : bool
-        During :meth:`run`, keep the loop's thread on a processor of its own and the
-        process's other threads and child processes off it
-        (:class:`~tracker.live.affinity.LoopAffinity`; Linux, two processors or more).
+        During :meth:`run`, the loop's thread on a processor of its own, the process's other
+        threads and children off it (:class:`~tracker.live.affinity.LoopAffinity`).
     realtime : bool
-        Each frame's step at a real-time priority during the run, where permitted and the
-        loop is pinned (:class:`~tracker.live.priority.FramePriority`).
+        Each frame's step at a real-time priority where permitted and the loop is pinned
+        (:class:`~tracker.live.priority.FramePriority`).
     keep_awake : bool
-        During :meth:`run`, keep the processors out of their deep sleep states, which lose
-        the caches between frames (:class:`~tracker.live.wake.WakeLatency`; Linux, needs
-        write access to ``/dev/cpu_dma_latency``, said once when missing).
+        During :meth:`run`, the processors kept out of their deep sleep states, which lose
+        the caches (:class:`~tracker.live.wake.WakeLatency`; needs ``/dev/cpu_dma_latency``).
     collect_between_frames : bool
         During :meth:`run`, collect garbage between frames only (:mod:`tracker.live.collection`).
     """
@@ -342,6 +340,18 @@ class LiveTracker:
                 q = self._moved_on(q, sample.q_dot, sample.age_s)
         return q, sample.q_dot, status
 
+    def _prepare(self, q: Array) -> None:
+        """The estimator's model at the frame's joints ``q``, if it has ``prepare(q)``."""
+        if callable(prepare := getattr(self.estimator, "prepare", None)):
+            with contextlib.suppress(ValueError):  # joints out of range: the step says so
+                prepare(q)
+
+    def _read_joints(self, time_s: float, frame: Frame | None, into: list) -> None:
+        """The frame's joints (into ``into``) and the model at them, read meanwhile."""
+        into.append(self._joints_at(time_s, frame))
+        if not into[0][2] & PREDICT_ONLY:
+            self._prepare(into[0][0])
+
     def _predict_region(self, time_s: float, q: Array) -> None:
         """Where the catheter will be in the views at ``time_s`` with the joints ``q``: the
         model at the last valid estimate, px per view, for the segmentation of the frame at
@@ -378,19 +388,14 @@ class LiveTracker:
         """Get ready for the frame due: called while the loop waits; True if it primed.
 
         Once per frame, :data:`PRIME_LEAD_S` before the frame is due
-        (:class:`~tracker.live.pacing.FramePace`): the joint datagrams are drained and
-        sampled at the frame's expected time; the catheter's region in its images is
-        predicted from them, and an estimator with ``prepare(q)`` computes its model at
-        them. That is work the frame needs anyway, done with the newest joints; and it
-        brings the loop's code and data back into the processor's caches, which the other
-        threads and processes used while the loop waited (~0.6 ms a frame on a 2-core
-        machine otherwise). With ``rehearse``, the last frame's images are then segmented
-        again, the result dropped and the segmenter unchanged, earlier by the time that
-        takes: a pair segmented 45 ms after the last one costs about twice what it costs
-        right after another (its code and data leave the caches over the wait). From then
-        until the frame comes (at most one lead past its due time), the queued sinks pause,
-        so that they neither take those caches again nor hold the interpreter when it comes.
-        """
+        (:class:`~tracker.live.pacing.FramePace`): the joints are sampled at the frame's
+        expected time, the catheter's region in its images is predicted from them and an
+        estimator with ``prepare(q)`` computes its model at them: work the frame needs, and
+        the loop's code and data back in the caches (docs/live.md). With ``rehearse``, the
+        last frame's images are segmented again, the result dropped, earlier by the time
+        that takes. From then until the frame comes (at most one lead past its due time),
+        the queued sinks pause, so that they neither take those caches again nor hold the
+        interpreter when it comes."""
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
         if self._primed:
@@ -409,9 +414,7 @@ class LiveTracker:
         if sample.status in (JointStatus.OK, JointStatus.HELD):
             # Held: the newest values, moved on to the frame's time (a few ms).
             q = self._moved_on(sample.q, sample.q_dot, max(sample.age_s, 0.0))
-            if callable(prepare := getattr(self.estimator, "prepare", None)):
-                with contextlib.suppress(ValueError):  # joints out of range: the step says so
-                    prepare(q)  # the estimator's model at the frame's joints
+            self._prepare(q)
             if self._images:
                 self._predict_region(time_s, q)
         self._rehearse(time_s)
@@ -454,7 +457,7 @@ class LiveTracker:
         predicted = self._region_for(time_s)
         joints, options = [], {"settle": False} if self._settles else {}
         if self._overlaps:
-            options["meanwhile"] = lambda: joints.append(self._joints_at(time_s, frame))
+            options["meanwhile"] = lambda: self._read_joints(time_s, frame, joints)
         if predicted is None and not options:
             seg = self.segmenter.segment(images)
         else:
@@ -779,14 +782,9 @@ def run_live(
 ) -> LiveSummary:
     """Build a :class:`LiveTracker` and run it over ``source``; returns the summary."""
     tracker = LiveTracker(
-        reconstructor,
-        estimator,
-        sinks,
-        joints=joints,
-        segmenter=segmenter,
-        report=report,
+        reconstructor, estimator, sinks, joints=joints, segmenter=segmenter, report=report,
         monotonic=monotonic,
-    )
+    )  # fmt: skip
     return tracker.run(
         source, idle_timeout_s=idle_timeout_s, max_frames=max_frames, handle_signals=handle_signals
     )
