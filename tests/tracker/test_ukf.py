@@ -742,6 +742,66 @@ def test_a_frame_whose_3d_points_are_all_missing_is_fused_from_its_views():
     assert Flag.PARTIAL in a.flags and Flag.PARTIAL not in b.flags
 
 
+def test_single_view_groups_hold_the_model_vectors_of_their_finite_points():
+    """A frame of single views becomes the finite rows of each view, in order, each with the
+    model vector of its point (Catheter.shape_vectors: the tip for -1, marker k for k), bit
+    for bit; a view with no finite row is left out, one with some missing makes the frame
+    partial; malformed views are named."""
+    from tracker.estimators.deviation import ShapeExpansion
+    from tracker.estimators.ukf import observation_groups
+
+    catheter = default_catheter()
+    expansion = ShapeExpansion(catheter)
+    front, side = default_pinhole_rig().views
+    q = np.array([0.3, 0.6, -0.4])
+    shape = catheter.shape_vectors(q)
+    n = len(catheter.marker_arclengths_mm)
+    rng = np.random.default_rng(5)
+    R_w_b, o_b_w = rot_z(0.3), np.array([1.0, 2.0, 3.0])
+
+    def measurement(view, index, lost=()):
+        uv = rng.uniform(100, 500, (len(index), 2))
+        cov = np.broadcast_to(np.diag([0.3, 0.5]), (len(index), 2, 2)).copy()
+        for row, part in lost:
+            (uv if part == "uv" else cov)[row] = np.nan
+        return ViewMeasurement(view, R_w_b, o_b_w, uv, cov, np.asarray(index))
+
+    def model(index):
+        return np.array([shape.c_tip_mm if k < 0 else shape.c_markers_mm[k] for k in index])
+
+    cases = [
+        ((measurement(front, [-1, 0, n - 1]), measurement(side, [n - 1, -1])), False),
+        ((measurement(front, [n - 1, -1, 0], [(1, "uv")]), measurement(side, [-1])), True),
+        ((measurement(front, [-1, 0], [(0, "cov"), (1, "uv")]), measurement(side, [0, -1])), True),
+    ]
+    for views, partial in cases:
+        groups, is_partial = observation_groups(expansion, Observation(0.0, q, views=views), q)
+        assert is_partial is partial
+        kept = []
+        for m in views:
+            finite = np.isfinite(m.uv).all(axis=1) & np.isfinite(m.cov).all(axis=(1, 2))
+            if finite.any():
+                kept.append((m, finite))
+        assert len(groups.parts) == len(kept)
+        for (view, C, R, o), (m, finite) in zip(groups.parts, kept, strict=True):
+            assert view is m.view
+            assert np.array_equal(C, model(m.point_index[finite]))
+            assert np.array_equal(R, R_w_b) and np.array_equal(o, o_b_w)
+        assert np.array_equal(groups.z[0], np.concatenate([m.uv[f] for m, f in kept]))
+        assert np.array_equal(groups.R[0], np.concatenate([m.cov[f] for m, f in kept]))
+        assert groups.present.all() and np.array_equal(groups.q[0], q)
+    nothing = (measurement(front, [-1], [(0, "uv")]),)
+    assert observation_groups(expansion, Observation(0.0, q, views=nothing), q)[0] is None
+    bad = measurement(front, [-1, 0])
+    for view, message in (
+        (replace(bad, point_index=np.array([-1, n])), "point_index must be -1"),
+        (replace(bad, point_index=np.array([-2, 0])), "point_index must be -1"),
+        (replace(bad, point_index=np.array([-1])), "2 points, 2 covariances and 1 point"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            observation_groups(expansion, Observation(0.0, q, views=(view,)), q)
+
+
 def test_preparing_the_expansion_changes_no_number_and_ignores_joints_not_finite():
     """ShapeExpansion.prepare computes the node a frame at q will use (the live loop's
     priming): the frame's expansion is then the same, bit for bit, as without it."""

@@ -159,8 +159,11 @@ def marker_blocks(markers_cov, n_markers: int) -> Array:
 
 
 def _view_groups(catheter: Catheter, observation: Observation, q: Array):
-    shape = catheter.shape_vectors(q)
-    n_markers = len(catheter.marker_arclengths_mm)
+    # The model vectors of the tip, then of each marker: shape_vectors' numbers, in fewer
+    # calls (a frame of single views is on the live loop's critical path); the checks on
+    # plain Python values where the arrays are a few points long.
+    points = catheter.points(q)
+    n_markers = points.shape[0] - 1
     parts, zs, covs = [], [], []
     partial = False
     for view in observation.views:
@@ -172,20 +175,24 @@ def _view_groups(catheter: Catheter, observation: Observation, q: Array):
                 f"view measurement has {uv.shape[0]} points, {cov.shape[0]} covariances and "
                 f"{index.shape[0]} point indices"
             )
-        if np.any(index < -1) or np.any(index >= n_markers):
+        rows = index.tolist()
+        if rows and (min(rows) < -1 or max(rows) >= n_markers):
             raise ValueError(
                 f"view point_index must be -1 (tip) or a marker in [0, {n_markers}), got "
-                f"{index.tolist()}"
+                f"{rows}"
             )
-        ok = np.isfinite(uv).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
-        partial |= not ok.all()
-        if not ok.any():
+        ok = np.isfinite(np.concatenate([uv, cov.reshape(-1, 4)], axis=1)).all(axis=1)
+        found = ok.tolist()
+        partial |= not all(found)
+        if not any(found):
             continue
-        C = np.where((index[ok] < 0)[:, None], shape.c_tip_mm, shape.c_markers_mm[index[ok]])
+        if not all(found):
+            uv, cov, index = uv[ok], cov[ok], index[ok]
+        C = points[index + 1]  # row 0 the tip (index -1), row k + 1 marker k
         R_w_b = np.asarray(view.R_w_b, dtype=float)
         parts.append((view.view, C, R_w_b, np.asarray(view.o_b_w_mm, dtype=float)))
-        zs.append(uv[ok])
-        covs.append(cov[ok])
+        zs.append(uv)
+        covs.append(cov)
     if not parts:
         return None
     z = np.concatenate(zs)[None]
