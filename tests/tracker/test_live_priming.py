@@ -454,6 +454,34 @@ def test_the_joints_are_read_while_the_segmenter_waits_for_its_other_view(
     reference_joints.close()
 
 
+def test_joints_read_meanwhile_that_are_too_old_make_the_frame_predict_only(session, joints):
+    """The joint stream stops after frame 1: frame 4, 0.1 s past its newest sample, reads
+    them in the segmenter's wait as before, the estimator's model is not prepared at them,
+    and the frame is predict-only and not valid, as when they are read after."""
+    from tracker.live.sinks import PREDICT_ONLY
+
+    calls = []
+    receiver = joints.receiver
+    sample = receiver.sample
+    receiver.sample = lambda time_s: calls.append("joints") or sample(time_s)
+    tracker = loop_of(
+        session, joints, OverlappingSegmenter(session.frames, calls), CallSink(calls)
+    )
+    prepare = tracker.estimator.prepare
+    tracker.estimator.prepare = lambda q: calls.append("model") or prepare(q)
+    for k in range(2):
+        assert step(tracker, session, joints, k, received_s=None).estimate.valid
+    calls.clear()
+    result = tracker.step(images_of(session, 4))  # no joint datagram since frame 1's
+    assert calls == [
+        "own view, settle=False", "joints", "other view", "estimate sent", "settle",
+    ]  # fmt: skip
+    assert result.status & PREDICT_ONLY
+    assert not result.estimate.valid and np.isnan(result.estimate.delta_L_rad)
+    assert tracker.summary.frames_stale_joints + tracker.summary.frames_extrapolated_joints == 1
+    tracker.close()
+
+
 def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
     """The loop waits for a frame at most until priming must start: the priming's running
     time plus the lead before the frame is due, so that it never holds up the frame."""

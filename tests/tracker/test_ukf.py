@@ -847,5 +847,8 @@ def test_a_prepared_expansion_is_taken_once_and_only_for_exactly_its_joints():
     for a, b in zip(prepared.expanded(batch), fresh.expanded(batch), strict=True):
         assert np.array_equal(a, b)
     prepared.prepare(q[0])
+    held = prepared._prepared
+    prepared.prepare(q[0].copy())  # the same joints again (a catheter held still): kept
+    assert prepared._prepared is held
     prepared.prepare(np.array([0.3, np.nan, 0.1]))  # not finite: nothing, the last dropped
     assert prepared._prepared is None

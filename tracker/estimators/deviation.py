@@ -105,8 +105,11 @@ class ShapeExpansion:
         :meth:`expanded` of exactly these q (one configuration) takes it instead of
         computing it again (the same numbers)."""
         q = np.array(q, dtype=float)
-        self._prepared = None
+        held, self._prepared = self._prepared, None
         if q.shape == (3,) and np.isfinite(q).all():
+            if held is not None and held[0] == q.tolist():
+                self._prepared = held  # a catheter held still: primed at these joints already
+                return
             with contextlib.suppress(ValueError):  # out of the model's range: step says so
                 self._prepared = (q.tolist(), *self.expanded(q[None]))
 

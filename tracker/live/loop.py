@@ -348,9 +348,10 @@ class LiveTracker:
 
     def _read_joints(self, time_s: float, frame: Frame | None, into: list) -> None:
         """The frame's joints (into ``into``) and the model at them, read meanwhile."""
-        into.append(self._joints_at(time_s, frame))
-        if not into[0][2] & PREDICT_ONLY:
-            self._prepare(into[0][0])
+        q, q_dot, status = self._joints_at(time_s, frame)
+        into.append((q, q_dot, status))
+        if not status & PREDICT_ONLY:
+            self._prepare(q)
 
     def _predict_region(self, time_s: float, q: Array) -> None:
         """Where the catheter will be in the views at ``time_s`` with the joints ``q``: the
