@@ -191,6 +191,74 @@ def test_priming_drains_the_joints_predicts_the_region_and_pauses_the_sinks(sess
     tracker.close()
 
 
+def policy_of(thread_id: int) -> int:
+    """A thread's scheduling policy (0: the calling one), without SCHED_RESET_ON_FORK."""
+    return os.sched_getscheduler(thread_id) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+
+
+class PolicyOf(MemorySink):
+    """Records, as each frame is handed over, the scheduling policy of the loop's thread and
+    of another thread."""
+
+    def __init__(self, thread_id):
+        super().__init__()
+        self.thread_id, self.policies = thread_id, []
+
+    def handle(self, *args, **kwargs):
+        self.policies.append((policy_of(0), policy_of(self.thread_id)))
+        super().handle(*args, **kwargs)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux's policies")
+def test_the_loop_and_its_capture_thread_wait_for_a_primed_frame_at_its_priority(
+    session, joints
+):
+    """From the priming until the frame is taken, or one lead past its due time, the loop's
+    thread and the capture thread are at SCHED_FIFO (a frame that comes then wakes them at
+    once); the capture thread is put back as the frame's step starts, the loop's after it."""
+    import threading
+
+    from tracker.live.priority import FramePriority
+
+    if not FramePriority().start():
+        pytest.fail("this test needs SCHED_FIFO: run as root or with an rtprio limit")
+    ordinary, fifo = os.SCHED_OTHER, os.SCHED_FIFO
+    done = threading.Event()
+    capture = threading.Thread(target=done.wait, daemon=True)
+    capture.start()
+    memory = PolicyOf(capture.native_id)
+    tracker = loop_of(session, joints, StandInSegmenter(session.frames), memory)
+    tracker._capture = types.SimpleNamespace(thread_id=capture.native_id, dropped=0)
+    tracker._priority.start()  # as run() does with the loop pinned
+    try:
+        for k in range(3):
+            step(tracker, session, joints, k, received_s=10.0 + 0.05 * k)
+        assert {p for pair in memory.policies for p in pair} == {fifo, ordinary}
+        assert [p[1] for p in memory.policies] == [ordinary] * 3
+        assert policy_of(0) == policy_of(capture.native_id) == ordinary
+        due_s = 10.15
+        joints.send_until(session.frames[3].time_s - 0.001)
+        assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
+        assert policy_of(0) == policy_of(capture.native_id) == fifo
+        assert not tracker.prime(due_s)  # still waiting for it
+        assert policy_of(capture.native_id) == fifo
+        step(tracker, session, joints, 3, received_s=due_s)
+        assert memory.policies[-1] == (fifo, ordinary)  # the step's own priority
+        assert policy_of(0) == policy_of(capture.native_id) == ordinary
+        # A frame that does not come: put back one lead past its due time.
+        due_s = 10.20
+        joints.send_until(session.frames[4].time_s - 0.001)
+        assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
+        assert policy_of(capture.native_id) == fifo
+        assert not tracker.prime(due_s + 2 * PRIME_LEAD_S)
+        assert policy_of(0) == policy_of(capture.native_id) == ordinary
+    finally:
+        tracker._priority.release()
+        done.set()
+        capture.join()
+        tracker.close()
+
+
 def test_priming_prepares_the_estimator_s_model_at_the_frame_s_joints(session, joints):
     """The shape expansion's node of the frame's joints (six shape evaluations) is computed
     in the priming, from the joints moved on to the frame's time: the frame's own step

@@ -99,6 +99,72 @@ def test_off_or_refused_it_changes_nothing_and_a_refusal_is_said_once(monkeypatc
     assert not priority.enabled
 
 
+class Waiting:
+    """A thread that waits (blocked) until told to end, and its native id."""
+
+    def __init__(self):
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self.done.wait)
+        self.thread.start()
+
+    @property
+    def id(self) -> int:
+        return self.thread.native_id
+
+    def end(self):
+        self.done.set()
+        self.thread.join()
+
+
+def test_held_threads_are_real_time_until_released_and_others_are_left_alone():
+    """``hold`` raises the calling thread (0) and other threads by their native ids; a
+    thread with a real-time policy of its own, an ended one and None are left as they are;
+    ``release`` puts back exactly those it raised."""
+    if not permitted():
+        pytest.fail("this test needs SCHED_FIFO: run as root or with an rtprio limit")
+    waiting, own, ended = Waiting(), Waiting(), Waiting()
+    ended_id = ended.id
+    ended.end()
+    os.sched_setscheduler(own.id, os.SCHED_RR, os.sched_param(20))
+    priority = FramePriority()
+    assert priority.start()
+    try:
+        priority.hold([0, waiting.id, own.id, ended_id, None])
+        assert set(priority.held) == {0, waiting.id}
+        assert policy() == policy(waiting.id) == os.SCHED_FIFO
+        assert os.sched_getparam(waiting.id).sched_priority == PRIORITY
+        priority.hold([0, waiting.id])  # held already: nothing changes
+        with priority:  # a frame's step inside the hold keeps the hold's priority
+            assert policy() == os.SCHED_FIFO
+        assert policy() == os.SCHED_FIFO
+        priority.release()
+        assert priority.held == ()
+        assert policy() == policy(waiting.id) == os.SCHED_OTHER
+        assert (policy(own.id), os.sched_getparam(own.id).sched_priority) == (os.SCHED_RR, 20)
+        priority.release()  # nothing held: nothing to do
+        assert policy() == os.SCHED_OTHER
+    finally:
+        priority.release()
+        waiting.end()
+        own.end()
+
+
+def test_off_or_refused_a_hold_raises_nothing(monkeypatch):
+    waiting = Waiting()
+    try:
+        off = FramePriority(enabled=False)
+        off.hold([0, waiting.id])
+        assert off.held == () and policy() == policy(waiting.id) == os.SCHED_OTHER
+        said = []
+        priority = FramePriority(report=said.append)
+        refuse(monkeypatch)
+        priority.hold([0, waiting.id])
+        assert priority.held == () and not priority.enabled and len(said) == 1
+        assert policy(waiting.id) == os.SCHED_OTHER
+    finally:
+        waiting.end()
+
+
 class PolicySink(MemorySink):
     """Also records the scheduling policy of the thread that hands it each frame (the
     loop's)."""

@@ -14,7 +14,7 @@ the sinks given to it (the estimate datagram); every other output runs behind a
 :class:`~tracker.live.sinks.QueuedSink` in its own thread. A live source (cameras) is
 captured in its own thread and the loop always takes the newest frame (``NewestOnly``): the
 older ones are dropped and counted, never processed late. Python's garbage collection runs
-between frames; a frame's step, at a real-time priority where permitted.
+between frames; a frame's step and the wait for it, at a real-time priority where permitted.
 
 Faults, each counted in the :class:`LiveSummary`:
 
@@ -378,9 +378,8 @@ class LiveTracker:
 
     @staticmethod
     def _moved_on(q: Array, q_dot: Array | None, dt_s: float) -> Array:
-        """Joint values ``dt_s`` later at their rates (as they are without finite rates).
-        The motion's second order: far below the region's padding (40 px) over a frame
-        period, 0.2 mrad over a hold (20 ms) at 1 rad/s^2."""
+        """Joint values ``dt_s`` later at their rates (as they are without finite rates); the
+        second order is far below the region's padding over a frame period."""
         if q_dot is None or not np.all(np.isfinite(q_dot)):
             return q
         return q + q_dot * dt_s
@@ -396,12 +395,14 @@ class LiveTracker:
         last frame's images are segmented again, the result dropped, earlier by the time
         that takes. From then until the frame comes (at most one lead past its due time),
         the queued sinks pause, so that they neither take those caches again nor hold the
-        interpreter when it comes."""
+        interpreter when it comes, and the loop's and the capture thread wait at the
+        frame's priority (:meth:`FramePriority.hold`)."""
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
         if self._primed:
             if now > due_s + self.prime_lead_s:
                 self.idle.set()  # the frame is late: let the sinks work meanwhile
+                self._priority.release()
             return False
         if self.prime_lead_s is None or self.joints is None:
             return False
@@ -409,6 +410,7 @@ class LiveTracker:
             return False
         self._primed = True
         self.idle.clear()
+        self._priority.hold((0, None if self._capture is None else self._capture.thread_id))
         time_s = self.pace.next_time_s
         self.joints.poll()
         sample = self.joints.sample(time_s)
@@ -475,6 +477,7 @@ class LiveTracker:
             Monotonic time the item left the source (latency reference unless the source's
             times are monotonic stamps); now if not given."""
         self.idle.clear()
+        self._priority.release()  # the wait is over (prime)
         try:
             with self._priority:
                 return self._step(item, received_s)
@@ -708,6 +711,7 @@ class LiveTracker:
         finally:
             stop.closing = True
             self.idle.set()  # primed for a frame that never came: the sinks must not wait
+            self._priority.release()
             sys.setswitchinterval(switch_interval_s)
             cv2.setNumThreads(cv_threads)
             if self.affinity is not None:

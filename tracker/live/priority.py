@@ -17,6 +17,14 @@ share if the work of a frame never ended. Threads and processes started meanwhil
 inherit it (``SCHED_RESET_ON_FORK``). A thread that already has a real-time policy (the
 whole tracker started with ``chrt``) keeps its own.
 
+The wait for a frame is raised too (:meth:`FramePriority.hold`): from the start of the loop's
+priming for a frame (:meth:`~tracker.live.loop.LiveTracker.prime`) until the frame is taken,
+or one priming lead past its due time, the loop's thread and its capture thread
+(:class:`~tracker.live.sources.NewestOnly`) run at the same priority. Both are blocked for
+most of it; a frame that arrives then wakes them at once instead of after whatever ordinary
+thread holds their processor (``kdamond`` for up to 4 ms on a slower host). A capture thread
+that never blocks gets no more than that window: it is put back when the frame is taken.
+
 The live loop raises its step only when its thread has a processor of its own
 (:class:`~tracker.live.affinity.LoopAffinity`): polling at a real-time priority for the
 worker's answer on the processor the worker shares would keep the worker off it.
@@ -30,7 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 PRIORITY = 1  # the lowest real-time priority
 
@@ -65,6 +73,7 @@ class FramePriority:
         self.report = report
         self.refused: str | None = None
         self._saved: tuple[int, os.sched_param] | None = None
+        self._held: dict[int, tuple[int, os.sched_param]] = {}
 
     def start(self) -> bool:
         """Turn it on; whether the system allows it (tried once now: raised and put back,
@@ -77,6 +86,28 @@ class FramePriority:
         """Turn it off."""
         self.enabled = False
 
+    def hold(self, thread_ids: Iterable[int | None]) -> None:
+        """Raise these threads (native ids; 0 is the calling thread; None is skipped) until
+        :meth:`release`; a thread already raised or real-time stays as it is."""
+        for thread_id in thread_ids:
+            if thread_id is None or thread_id in self._held:
+                continue
+            saved = self._raise(thread_id)
+            if saved is not None:
+                self._held[thread_id] = saved
+
+    def release(self) -> None:
+        """Put the threads raised by :meth:`hold` back (nothing when none are held)."""
+        if self._held:
+            held, self._held = self._held, {}
+            for thread_id, saved in held.items():
+                self._restore(saved, thread_id)
+
+    @property
+    def held(self) -> tuple[int, ...]:
+        """The threads :meth:`hold` raised and that are not released yet."""
+        return tuple(self._held)
+
     def __enter__(self) -> FramePriority:
         self._saved = self._raise()
         return self
@@ -85,17 +116,21 @@ class FramePriority:
         saved, self._saved = self._saved, None
         self._restore(saved)
 
-    def _raise(self) -> tuple[int, os.sched_param] | None:
-        """Raise the calling thread; what to put back (None: nothing was changed, because
+    def _raise(self, thread_id: int = 0) -> tuple[int, os.sched_param] | None:
+        """Raise a thread (0: the calling one); what to put back (None: nothing was changed, because
         it is off, refused, or the thread already has a real-time policy of its own, e.g.
         from ``chrt``, which it keeps)."""
         if not self.enabled:
             return None
         try:
-            saved = os.sched_getscheduler(0), os.sched_getparam(0)
+            saved = os.sched_getscheduler(thread_id), os.sched_getparam(thread_id)
             if (saved[0] & ~_RESET_ON_FORK) in _REAL_TIME:
                 return None
-            os.sched_setscheduler(0, os.SCHED_FIFO | _RESET_ON_FORK, os.sched_param(PRIORITY))
+            os.sched_setscheduler(
+                thread_id, os.SCHED_FIFO | _RESET_ON_FORK, os.sched_param(PRIORITY)
+            )
+        except ProcessLookupError:  # that thread has ended
+            return None
         except OSError as exc:  # not permitted (no CAP_SYS_NICE, no rtprio limit)
             self.enabled = False
             self.refused = str(exc)
@@ -109,7 +144,8 @@ class FramePriority:
         return saved
 
     @staticmethod
-    def _restore(saved: tuple[int, os.sched_param] | None) -> None:
+    def _restore(saved: tuple[int, os.sched_param] | None, thread_id: int = 0) -> None:
         if saved is not None:
-            with contextlib.suppress(OSError):  # back to what it was: always permitted
-                os.sched_setscheduler(0, *saved)
+            # Back to what it was: always permitted (an ended thread: nothing to do).
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(thread_id, *saved)
