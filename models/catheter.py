@@ -199,6 +199,11 @@ class _Plan:
         return self.column_1[order].copy(), self.column_2[order].copy()
 
     @cached_property
+    def point_columns_array(self) -> tuple[Array, Array]:
+        """column_1 and column_2 as writable copies (the compiled kernels' argument type)."""
+        return self.column_1.copy(), self.column_2.copy()
+
+    @cached_property
     def point_columns(self) -> tuple[tuple[int, int], ...]:
         """(column_1[k], column_2[k]) for every arclength, as Python ints."""
         return tuple(zip(self.column_1.tolist(), self.column_2.tolist(), strict=True))
@@ -597,8 +602,16 @@ class Catheter:
         s = np.atleast_1d(s)
         if s.ndim != 1:
             raise ValueError(f"arclength_mm must be a scalar or 1-D, got shape {s.shape}")
-        shape = self._shape(self._plan(tuple(s.tolist())), q[..., 1], q[..., 2], rates=False)
-        points = rotate_z(shape["c"], (q[..., 0] + delta_L)[..., None])
+        plan = self._plan(tuple(s.tolist()))
+        if q.shape == (3,) and delta_L.ndim == 0 and self._power_sizes is not None:
+            # One configuration (the live loop's region, every frame): compiled, as points().
+            c = points_at_powers(
+                q[1:2].copy(), q[2:3].copy(), *self._power_sizes, plan.G_single,
+                plan.weights_single, *plan.point_columns_array, *self._delta_2_cos_sin,
+            )[0]  # fmt: skip
+        else:
+            c = self._shape(plan, q[..., 1], q[..., 2], rates=False)["c"]
+        points = rotate_z(c, (q[..., 0] + delta_L)[..., None])
         return points[..., 0, :] if scalar else points
 
     def frames(self, q: Array, delta_L: Array | float = 0.0) -> Frames:

@@ -612,3 +612,24 @@ def test_the_compiled_points_of_power_bases_are_those_of_the_general_path():
     np.testing.assert_array_equal(catheter.points_of(q), other.points_of(q))
     for row in q:
         np.testing.assert_array_equal(catheter.points(row), other.points(row))
+
+
+def test_the_backbone_of_one_configuration_is_the_batch_s_at_every_arclength():
+    """One configuration of the default model (power bases) takes the compiled path of
+    ``points``; a batch of one takes the general one: the same points to rounding, at
+    arclengths in either segment, at their joint and at both ends."""
+    catheter = default_catheter()
+    rng = np.random.default_rng(11)
+    L1, L = catheter.proximal.length_mm, catheter.length_mm
+    arclengths = [np.array([0.0, L1, L]), np.linspace(0.0, L, 12), np.sort(rng.uniform(0, L, 7))]
+    q, _, delta_L = _random_configurations(rng, 50)
+    for k in range(50):
+        for s in arclengths:
+            one = catheter.backbone(q[k], float(delta_L[k]), s)
+            batch = catheter.backbone(q[k][None], delta_L[k : k + 1], s)[0]
+            np.testing.assert_allclose(one, batch, rtol=0, atol=1e-12)
+        point = catheter.backbone(q[k], float(delta_L[k]), 0.5 * L)
+        assert point.shape == (3,)
+        np.testing.assert_allclose(
+            point, catheter.backbone(q[k][None], delta_L[k : k + 1], 0.5 * L)[0], atol=1e-12
+        )
