@@ -602,17 +602,32 @@ class Catheter:
         s = np.atleast_1d(s)
         if s.ndim != 1:
             raise ValueError(f"arclength_mm must be a scalar or 1-D, got shape {s.shape}")
-        plan = self._plan(tuple(s.tolist()))
-        if q.shape == (3,) and delta_L.ndim == 0 and self._power_sizes is not None:
-            # One configuration (the live loop's region, every frame): compiled, as points().
-            c = points_at_powers(
-                q[1:2].copy(), q[2:3].copy(), *self._power_sizes, plan.G_single,
-                plan.weights_single, *plan.point_columns_array, *self._delta_2_cos_sin,
-            )[0]  # fmt: skip
-        else:
-            c = self._shape(plan, q[..., 1], q[..., 2], rates=False)["c"]
-        points = rotate_z(c, (q[..., 0] + delta_L)[..., None])
+        shape = self._shape(self._plan(tuple(s.tolist())), q[..., 1], q[..., 2], rates=False)
+        points = rotate_z(shape["c"], (q[..., 0] + delta_L)[..., None])
         return points[..., 0, :] if scalar else points
+
+    def outline(self, q: Array, delta_L: float, arclength_mm: tuple[float, ...]) -> Array:
+        """:meth:`backbone` of one configuration at arclengths given as a tuple, (n, 3) mm in
+        {B}: the same points to rounding (not bit for bit), in a compiled call for a model
+        with power bases (the live loop's region of interest, twice a frame: a third of
+        :meth:`backbone`'s time); through :meth:`backbone` otherwise."""
+        q = check_joints(q)
+        if q.shape != (3,) or self._power_sizes is None or not math.isfinite(delta_L):
+            return self.backbone(q, delta_L, np.array(arclength_mm, float))
+        plan = self._plans.get(arclength_mm)
+        if plan is None:
+            self._check_arclengths(np.array(arclength_mm, float))
+            plan = self._plan(arclength_mm)
+        c = points_at_powers(
+            q[1:2].copy(), q[2:3].copy(), *self._power_sizes, plan.G_single,
+            plan.weights_single, *plan.point_columns_array, *self._delta_2_cos_sin,
+        )[0]  # fmt: skip
+        angle = float(q[0]) + float(delta_L)
+        cos, sin = math.cos(angle), math.sin(angle)
+        x, y = c[:, 0].copy(), c[:, 1].copy()
+        c[:, 0] = cos * x - sin * y
+        c[:, 1] = sin * x + cos * y
+        return c
 
     def frames(self, q: Array, delta_L: Array | float = 0.0) -> Frames:
         """Frames {2} and {4} in {B} (paper eqs. dk1, DKfull)."""

@@ -58,8 +58,15 @@ class Pose:
         return np.asarray(points_b, dtype=float) @ self.R_w_b.T + self.o_b_w_mm
 
     def base_from_world(self, points_w) -> Array:
-        """Points (..., 3) in {W} -> {B}, mm."""
-        return (np.asarray(points_w, dtype=float) - self.o_b_w_mm) @ self.R_w_b
+        """Points (..., 3) in {W} -> {B}, mm.
+
+        Element by element (``d_x R[0] + d_y R[1] + d_z R[2]``), not a matrix product: the
+        same numbers for a point whatever else is in the batch (a product of many rows may
+        take another BLAS kernel, with another order of its sums, than one of a few), so
+        that a batch and the same frames one by one agree bit for bit on any processor."""
+        d = np.asarray(points_w, dtype=float) - self.o_b_w_mm
+        R = self.R_w_b
+        return d[..., 0:1] * R[0] + d[..., 1:2] * R[1] + d[..., 2:3] * R[2]
 
     def covariance_to_base(self, cov_w) -> Array:
         """Covariances (..., 3, 3) of points in {W} expressed in {B}: ``R_w_b^T C R_w_b``."""

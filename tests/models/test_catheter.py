@@ -614,22 +614,28 @@ def test_the_compiled_points_of_power_bases_are_those_of_the_general_path():
         np.testing.assert_array_equal(catheter.points(row), other.points(row))
 
 
-def test_the_backbone_of_one_configuration_is_the_batch_s_at_every_arclength():
-    """One configuration of the default model (power bases) takes the compiled path of
-    ``points``; a batch of one takes the general one: the same points to rounding, at
-    arclengths in either segment, at their joint and at both ends."""
+def test_the_outline_of_one_configuration_is_its_backbone_to_rounding():
+    """``outline`` (the compiled path of ``points`` for the default model's power bases)
+    gives ``backbone``'s points to rounding, at arclengths in either segment, at their joint
+    and at both ends; arclengths off the catheter and non-finite joints are refused alike,
+    and a batch or a non-finite delta_L goes through ``backbone``."""
     catheter = default_catheter()
     rng = np.random.default_rng(11)
     L1, L = catheter.proximal.length_mm, catheter.length_mm
-    arclengths = [np.array([0.0, L1, L]), np.linspace(0.0, L, 12), np.sort(rng.uniform(0, L, 7))]
+    arclengths = [(0.0, L1, L), tuple(np.linspace(0.0, L, 12).tolist()),
+                  tuple(np.sort(rng.uniform(0, L, 7)).tolist())]
     q, _, delta_L = _random_configurations(rng, 50)
     for k in range(50):
         for s in arclengths:
-            one = catheter.backbone(q[k], float(delta_L[k]), s)
-            batch = catheter.backbone(q[k][None], delta_L[k : k + 1], s)[0]
-            np.testing.assert_allclose(one, batch, rtol=0, atol=1e-12)
-        point = catheter.backbone(q[k], float(delta_L[k]), 0.5 * L)
-        assert point.shape == (3,)
-        np.testing.assert_allclose(
-            point, catheter.backbone(q[k][None], delta_L[k : k + 1], 0.5 * L)[0], atol=1e-12
-        )
+            outline = catheter.outline(q[k], float(delta_L[k]), s)
+            assert outline.shape == (len(s), 3)
+            np.testing.assert_allclose(
+                outline, catheter.backbone(q[k], float(delta_L[k]), np.array(s)),
+                rtol=0, atol=1e-12,
+            )
+    with pytest.raises(ValueError, match="arclength outside the catheter"):
+        catheter.outline(q[0], 0.0, (0.0, L + 1.0))
+    with pytest.raises(ValueError):
+        catheter.outline(np.array([0.0, np.nan, 0.0]), 0.0, (0.0, L))
+    with pytest.raises(ValueError):
+        catheter.outline(q[0], float("nan"), (0.0, L))

@@ -235,7 +235,8 @@ class LiveTracker:
         self._primed = False  # for the frame due
         self._images = False  # the last frame was images (segmented here)
         self._roi: tuple[float, tuple[Array, ...]] | None = None  # (for time, px per view)
-        self._roi_arclengths = np.linspace(0.0, reconstructor.catheter.length_mm, ROI_POINTS)
+        length_mm = reconstructor.catheter.length_mm
+        self._roi_arclengths = tuple(np.linspace(0.0, length_mm, ROI_POINTS).tolist())
         self._capture: NewestOnly | None = None
         self._speed: float | None = 1.0  # of the source's stream time (None: no pace)
         self._reported: set[str] = set()
@@ -363,7 +364,7 @@ class LiveTracker:
             return
         r = self.reconstructor
         try:
-            points_b = r.catheter.backbone(q, self._last_delta_L_rad, self._roi_arclengths)
+            points_b = r.catheter.outline(q, self._last_delta_L_rad, self._roi_arclengths)
         except ValueError:
             return
         points_w = r.pose.world_from_base(points_b)
