@@ -614,20 +614,14 @@ class Catheter:
         q = check_joints(q)
         if q.shape != (3,) or self._power_sizes is None or not math.isfinite(delta_L):
             return self.backbone(q, delta_L, np.array(arclength_mm, float))
-        plan = self._plans.get(arclength_mm)
-        if plan is None:
+        if arclength_mm not in self._plans:
             self._check_arclengths(np.array(arclength_mm, float))
-            plan = self._plan(arclength_mm)
+        plan = self._plan(arclength_mm)
         c = points_at_powers(
             q[1:2].copy(), q[2:3].copy(), *self._power_sizes, plan.G_single,
             plan.weights_single, *plan.point_columns_array, *self._delta_2_cos_sin,
         )[0]  # fmt: skip
-        angle = float(q[0]) + float(delta_L)
-        cos, sin = math.cos(angle), math.sin(angle)
-        x, y = c[:, 0].copy(), c[:, 1].copy()
-        c[:, 0] = cos * x - sin * y
-        c[:, 1] = sin * x + cos * y
-        return c
+        return rotate_z(c, float(q[0]) + float(delta_L))
 
     def frames(self, q: Array, delta_L: Array | float = 0.0) -> Frames:
         """Frames {2} and {4} in {B} (paper eqs. dk1, DKfull)."""

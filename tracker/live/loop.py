@@ -82,8 +82,7 @@ ROI_POINTS = 12
 """Points along the predicted catheter that outline the segmentation's region of interest."""
 ROI_TIME_TOLERANCE = 0.5
 """A region predicted for the next frame serves a frame this far from the predicted time, in
-frame periods (further: a frame came late or others were dropped; the segmenter then
-searches around the last frame's catheter)."""
+frame periods (further: the segmenter searches around the last frame's catheter)."""
 PRIME_LEAD_S = 0.003
 """How long before a frame is due the loop primes itself for it (:meth:`LiveTracker.prime`), s."""
 
@@ -227,16 +226,15 @@ class LiveTracker:
         self.summary = LiveSummary(joints=None if joints is None else joints.counts)
         self.age, self.latency, self.cycle = (LatencyRecorder() for _ in range(3))
         self.stages = {name: LatencyRecorder() for name in STAGES}  # summary's stage_ms
-        self._last_time_s: float | None = None
-        self._last_arrival_s: float | None = None
+        self._last_time_s = self._last_arrival_s = None  # float | None
         self._odd_times: list[float] = []  # consecutive frames rejected for their time
         self._last_delta_L_rad: float | None = None  # of the last valid estimate (ROI)
         self.pace = FramePace()  # when the next frame is due
         self._primed = False  # for the frame due
         self._images = False  # the last frame was images (segmented here)
         self._roi: tuple[float, tuple[Array, ...]] | None = None  # (for time, px per view)
-        length_mm = reconstructor.catheter.length_mm
-        self._roi_arclengths = tuple(np.linspace(0.0, length_mm, ROI_POINTS).tolist())
+        L = reconstructor.catheter.length_mm
+        self._roi_arclengths = tuple(np.linspace(0.0, L, ROI_POINTS).tolist())  # outline's
         self._capture: NewestOnly | None = None
         self._speed: float | None = 1.0  # of the source's stream time (None: no pace)
         self._reported: set[str] = set()
@@ -379,8 +377,7 @@ class LiveTracker:
 
     @staticmethod
     def _moved_on(q: Array, q_dot: Array | None, dt_s: float) -> Array:
-        """Joint values ``dt_s`` later at their rates (as they are without finite rates); the
-        second order is far below the region's padding over a frame period."""
+        """Joint values ``dt_s`` later at their rates (as they are without finite rates)."""
         if q_dot is None or not np.all(np.isfinite(q_dot)):
             return q
         return q + q_dot * dt_s
@@ -395,9 +392,8 @@ class LiveTracker:
         the loop's code and data back in the caches (docs/live.md). With ``rehearse``, the
         last frame's images are segmented again, the result dropped, earlier by the time
         that takes. From then until the frame comes (at most one lead past its due time),
-        the queued sinks pause, so that they neither take those caches again nor hold the
-        interpreter when it comes, and the loop's and the capture thread wait at the
-        frame's priority (:meth:`FramePriority.hold`)."""
+        the queued sinks pause (they neither take those caches again nor hold the
+        interpreter) and the loop's and capture threads wait at the frame's priority."""
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
         if self._primed:
