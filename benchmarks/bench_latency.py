@@ -77,6 +77,8 @@ LOOP_WORK = (
     (Reconstructor, "observe"),
     (CheckedEstimator, "step"),
     (BendingPlaneUKF, "prepare"),
+    (BendingPlaneUKF, "rehearse"),
+    (Reconstructor, "rehearse"),
     (LiveTracker, "_dispatch"),
     (LiveTracker, "_predict_region"),
     (PairSegmenter, "rehearse"),

@@ -68,6 +68,19 @@ class Reconstructor:
         """Forget the previous frame: the next frame has no finite-difference velocity."""
         self._previous: tuple[Array, Array, Array] | None = None  # one-row time, tip, cov
 
+    def rehearse(self, frame: Frame) -> None:
+        """:meth:`observe` without its result and without changing anything (the previous
+        frame, for the next one's velocity, is kept): the live loop runs it on the last frame
+        just before the next one is due (``LiveTracker.prime``). A frame :meth:`observe`
+        refuses is ignored."""
+        previous = self._previous
+        try:
+            self.observe(frame)
+        except ValueError:
+            pass
+        finally:
+            self._previous = previous
+
     def observe(self, frame: Frame) -> Observation:
         """Reconstruct one frame. Points missing in one view become single-view measurements.
 

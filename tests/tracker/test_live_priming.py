@@ -745,3 +745,67 @@ def test_a_background_update_that_fails_is_said_once_and_the_loop_goes_on(sessio
     assert all(r is not None and r.estimate.valid for r in results[1:])
     assert lines == ["a background update failed (boom)"]
     tracker.close()
+
+
+def recording(calls: list, owner, name: str):
+    """``owner.name`` that also appends (owner's type, name, argument) to ``calls``."""
+    original = getattr(owner, name)
+
+    def spy(item):
+        calls.append((type(owner).__name__, name, item))
+        return original(item)
+
+    return spy
+
+
+def primed_run(session, joints, rehearse: bool, calls: list | None = None):
+    """The session's frames through a loop primed before each, as live; its estimates."""
+    memory = MemorySink()
+    scene = session.scene
+    tracker = LiveTracker(
+        Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
+        make_estimator("ukf", scene.catheter), [memory], joints=joints.receiver,
+        segmenter=StandInSegmenter(session.frames), max_time_jump_s=1e9, rehearse=rehearse,
+    )  # fmt: skip
+    if calls is not None:  # what the priming runs, in order
+        for owner, name in ((tracker.reconstructor, "rehearse"), (tracker.estimator, "rehearse"),
+                            (tracker.estimator.inner, "prepare")):  # fmt: skip
+            setattr(owner, name, recording(calls, owner, name))
+    for k in range(len(session.frames)):
+        received_s = 10.0 + 0.05 * k
+        joints.send_until(session.frames[k].time_s - 0.001)
+        if k >= 2:  # once the pace is known
+            assert tracker.prime(received_s - 0.5 * PRIME_LEAD_S)
+        step(tracker, session, joints, k, received_s)
+    tracker.close()
+    return memory.results
+
+
+def test_priming_rehearses_the_last_frame_s_reconstruction_and_estimator_step(session):
+    """Priming runs the last frame's reconstruction and estimator step again at the next
+    frame's time, before the model is prepared at that frame's joints; the estimates are
+    to the bit those of a loop that does not rehearse."""
+    calls = []
+    with_joints, without_joints = Joints(), Joints()
+    try:
+        rehearsed = primed_run(session, with_joints, True, calls)
+        plain = primed_run(session, without_joints, False)
+    finally:
+        with_joints.close()
+        without_joints.close()
+    k = 3  # the priming for frame 3, after frame 2
+    time_s = session.frames[k].time_s
+    primed = [c for c in calls if c[1] == "rehearse" and abs(c[2].time_s - time_s) < 1e-9]
+    (_, _, frame), (_, _, observation) = primed
+    assert [c[0] for c in primed] == ["Reconstructor", "CheckedEstimator"]
+    for got, want in zip(frame.uv, rehearsed[k - 1].frame.uv, strict=True):
+        np.testing.assert_array_equal(got, want)  # the last frame's points...
+    np.testing.assert_array_equal(observation.tip_b_mm, rehearsed[k - 1].observation.tip_b_mm)
+    at = calls.index(primed[-1])
+    assert calls[at + 1][1] == "prepare"  # ...then the model at the frame's joints
+    assert sum(c[1] == "rehearse" for c in calls) == 2 * (len(session.frames) - 2)
+    assert len(rehearsed) == len(plain) == len(session.frames)
+    for a, b in zip(rehearsed, plain, strict=True):
+        assert (a.estimate.delta_L_rad, a.estimate.std_rad, a.estimate.flags) == (
+            b.estimate.delta_L_rad, b.estimate.std_rad, b.estimate.flags
+        )

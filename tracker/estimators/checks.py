@@ -352,6 +352,18 @@ class CheckedEstimator:
         flush()
         return estimates
 
+    def rehearse(self, observation: Observation) -> None:
+        """The wrapped estimator's ``rehearse`` (a step that changes nothing), if it has
+        one, for an observation it would be given after the last accepted one; nothing
+        here changes either."""
+        rehearse = getattr(self.inner, "rehearse", None)
+        t = float(observation.time_s)
+        last = self._last_time_s
+        if not (callable(rehearse) and math.isfinite(t)) or (last is not None and t <= last):
+            return
+        if observation_problem(observation, self.n_markers, self._buffer) is None:
+            rehearse(observation)
+
     def step(self, observation: Observation) -> Estimate:
         """The wrapped estimator's step, or a flagged, skipped step for a bad observation."""
         problem = self._problem(observation)

@@ -86,6 +86,16 @@ class ShapeExpansion:
         self._nodes: dict[tuple[int, int], tuple[Array, Array]] = {}
         self._prepared: tuple | None = None  # (q, c, [J K]) of the last prepare, once
 
+    @property
+    def held(self) -> tuple | None:
+        """What the last :meth:`prepare` computed, until :meth:`expanded` takes it (None:
+        nothing); set it back to put it in place again."""
+        return self._prepared
+
+    @held.setter
+    def held(self, value: tuple | None) -> None:
+        self._prepared = value
+
     def _node(self, key: tuple[int, int]) -> tuple[Array, Array]:
         """c and ``[J K]`` (P, 3, 5) at the grid node ``key``."""
         found = self._nodes.get(key)

@@ -472,6 +472,24 @@ class BendingPlaneUKF(Estimator):
             k += 1
         return estimates
 
+    def rehearse(self, observation: Observation) -> None:
+        """:meth:`step` on ``observation`` without its result and without changing anything:
+        the filter's state and the model prepared by :meth:`prepare` are as they were (the
+        live loop runs it on the last frame just before the next one is due, so that the
+        step's code and data are back in the processor's caches; ``LiveTracker.prime``). An
+        observation the step refuses is ignored."""
+        bank, expansion = self._bank, self._expansion
+        saved = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(bank).items()}
+        prepared = expansion.held
+        try:
+            self.step(observation)
+        except (ValueError, np.linalg.LinAlgError):
+            pass
+        finally:
+            vars(bank).clear()
+            vars(bank).update(saved)
+            expansion.held = prepared
+
     def step(self, observation: Observation) -> Estimate:
         """Consume one frame: predict to its time, then fuse what it measured.
 

@@ -16,23 +16,13 @@ captured in its own thread and the loop always takes the newest frame (``NewestO
 older ones are dropped and counted, never processed late. Python's garbage collection runs
 between frames; a frame's step and the wait for it, at a real-time priority where permitted.
 
-Faults, each counted in the :class:`LiveSummary`:
-
-- frames whose time does not increase (duplicates, out of order) are dropped; so are frames
-  whose time is implausible (not finite, ahead of this machine's clock for a source stamped
-  with it, or far ahead of the stream), counted by reason. They do not move the stream's
-  time on, so one bad time stamp cannot block the frames after it; a run of consistent such
-  frames is a new time base (a restarted sender): the estimator starts again;
-- frames without joint values at their time (the joint stream stopped, none yet, the time
-  before the kept history or past the newest sample by more than a short hold) are flagged
-  (:class:`LiveStatus`); the estimator gets a predict-only observation (never stale joints
-  with fresh markers) and the estimate sent is not valid (NaN, valid bit clear);
-- a frame that cannot be segmented or reconstructed is dropped and reported once per cause;
-- an estimator error gives an invalid estimate (NaN) for that frame, reported once;
-- a sink (:mod:`tracker.live.sinks`) that raises is reported once and disabled; the loop goes on;
-- Ctrl-C (SIGINT) or SIGTERM ends the loop after the current frame; a second Ctrl-C
-  interrupts at once. Every sink is closed (recordings finalised) and sockets released in
-  all cases, and :meth:`LiveTracker.run` returns the summary.
+Faults (docs/live.md, "How the loop handles faults", the table), each counted in the
+:class:`LiveSummary`: frames of implausible or out-of-order times are dropped (a run of
+consistent ones is a new time base); frames without joints at their time are flagged and
+predict only (never stale joints with fresh markers); a frame that cannot be segmented or
+reconstructed is dropped, an estimator error gives an invalid estimate, a sink that raises
+is disabled, each reported once; Ctrl-C or SIGTERM ends the loop after the current frame
+with every sink closed, and :meth:`LiveTracker.run` returns the summary.
 """
 
 from __future__ import annotations
@@ -159,8 +149,9 @@ class LiveTracker:
     prime_lead_s : float or None
         Prime the loop this long before a frame is due (None: never), s; see :meth:`prime`.
     rehearse : bool
-        Whether priming also segments the last frame's images again, without changing the
-        segmenter (:meth:`prime`; a segmenter without ``rehearse`` is never rehearsed).
+        Whether priming also runs the last frame again, its result dropped and nothing
+        changed (:meth:`prime`): its images' segmentation, its reconstruction and its
+        estimator step (each of these with a ``rehearse`` method; the others never are).
     pin : bool
         During :meth:`run`, the loop's thread on a processor of its own, the process's other
         threads and children off it (:class:`~tracker.live.affinity.LoopAffinity`).
@@ -207,6 +198,7 @@ class LiveTracker:
         self.cv_threads = cv_threads
         self.prime_lead_s = prime_lead_s
         self.rehearse = rehearse and callable(getattr(segmenter, "rehearse", None))
+        self.rehearse_steps = rehearse  # the reconstruction and the estimator's (prime)
         self._settles = callable(getattr(segmenter, "settle", None))
         # One that can read the joints while it waits for a view segmented elsewhere.
         self._overlaps = self._settles and "meanwhile" in signature(segmenter.segment).parameters
@@ -218,6 +210,7 @@ class LiveTracker:
         self._rehearsal_s = 0.0  # how long a rehearsal takes (a running mean), s
         self.priming = PrimeTiming()  # how long priming takes, the rehearsal included
         self._last_images = None  # the last frame's images, for the rehearsal
+        self._last_steps: tuple[Frame, Observation] | None = None  # and its other steps
         self.idle = threading.Event()  # set while the loop waits for a frame
         self.idle.set()
         self._sinks: list[_SinkEntry] = []
@@ -390,8 +383,9 @@ class LiveTracker:
         expected time, the catheter's region in its images is predicted from them and an
         estimator with ``prepare(q)`` computes its model at them: work the frame needs, and
         the loop's code and data back in the caches (docs/live.md). With ``rehearse``, the
-        last frame's images are segmented again, the result dropped, earlier by the time
-        that takes. From then until the frame comes (at most one lead past its due time),
+        last frame is run again, its result dropped and nothing changed: its reconstruction
+        and estimator step at the frame's time, and its images' segmentation, earlier by the
+        time that takes. From then until the frame comes (at most one lead past its due time),
         the queued sinks pause (they neither take those caches again nor hold the
         interpreter) and the loop's and capture threads wait at the frame's priority."""
         now = self.monotonic() if now is None else now
@@ -409,6 +403,7 @@ class LiveTracker:
         self.idle.clear()
         self._priority.hold((0, None if self._capture is None else self._capture.thread_id))
         time_s = self.pace.next_time_s
+        self._rehearse_steps(time_s)  # first: the estimator's rehearsal keeps what is prepared
         self.joints.poll()
         sample = self.joints.sample(time_s)
         if sample.status in (JointStatus.OK, JointStatus.HELD):
@@ -450,6 +445,20 @@ class LiveTracker:
         self._rehearsal_s = took if self._rehearsal_s == 0.0 else (
             0.8 * self._rehearsal_s + 0.2 * took
         )
+
+    def _rehearse_steps(self, time_s: float) -> None:
+        """The last frame's reconstruction and estimator step again at ``time_s`` (after the
+        estimator's time), changing nothing (see :meth:`prime`)."""
+        if not (self.rehearse_steps and self._last_steps):
+            return
+        frame, observation = self._last_steps
+        try:
+            for owner, item in ((self.reconstructor, frame), (self.estimator, observation)):
+                if callable(rehearse := getattr(owner, "rehearse", None)):
+                    rehearse(dataclasses.replace(item, time_s=time_s))
+        except Exception as exc:  # a rehearsal must never stop the loop
+            self.rehearse_steps = False
+            self.report(f"the estimator's rehearsal failed and is off ({exc})")
 
     def _segment(self, time_s: float, images, frame) -> tuple[SegmentedMarkers, list]:
         """The markers, and the joints if read while the segmenter waited (else [])."""
@@ -551,6 +560,7 @@ class LiveTracker:
             )
         elif estimate.valid and not status:
             self._last_delta_L_rad = float(estimate.delta_L_rad)
+        self._last_steps = None if status & PREDICT_ONLY else (frame, observation)
 
         self.stages["estimator"].add(self.monotonic() - observed_s)
         s.frames_processed += 1
@@ -737,9 +747,8 @@ class LiveTracker:
             try:
                 entry.sink.close()
             except Exception as exc:  # one failing close must not keep the others open
-                s.sink_failures.setdefault(
-                    entry.name, f"close failed: {type(exc).__name__}: {exc}"
-                )
+                failure = f"close failed: {type(exc).__name__}: {exc}"
+                s.sink_failures.setdefault(entry.name, failure)
                 self.report(f"sink {entry.name} failed to close ({exc})")
             if isinstance(entry.sink, QueuedSink):
                 queued = entry.sink
@@ -761,11 +770,7 @@ class LiveTracker:
         s.latency_ms = self.latency.percentiles_ms()
         s.latency_thirds_ms = self.latency.thirds_ms()
         s.cycle_ms = self.cycle.percentiles_ms()
-        s.stage_ms = {
-            name: recorder.percentiles_ms()
-            for name, recorder in self.stages.items()
-            if recorder.values().size
-        }
+        s.stage_ms = {n: r.percentiles_ms() for n, r in self.stages.items() if r.values().size}
 
 
 def run_live(
@@ -792,9 +797,4 @@ def run_live(
     )
 
 
-__all__ = [
-    "LatencyRecorder",
-    "LiveSummary",
-    "LiveTracker",
-    "run_live",
-]
+__all__ = ["LatencyRecorder", "LiveSummary", "LiveTracker", "run_live"]
