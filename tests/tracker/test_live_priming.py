@@ -718,6 +718,39 @@ def test_the_summary_says_where_the_time_of_a_frame_goes(session, joints):
     assert "segmentation 2.00 / 2.00 ms" in line and "estimator 0.50 / 0.50 ms" in line
 
 
+
+class SendingSink(MemorySink):
+    """A first sink (the estimate sender's place) that takes ``took_s`` of the loop's clock."""
+
+    def __init__(self, clock, took_s):
+        super().__init__()
+        self.clock, self.took_s = clock, took_s
+
+    def handle(self, frame, observation, estimate, latency_s, status):
+        super().handle(frame, observation, estimate, latency_s, status)
+        self.clock.now += self.took_s
+
+
+def test_the_latency_is_until_the_first_sink_has_sent(session, joints):
+    """The first sink (the estimate sender) gets the latency up to it (what its datagram
+    carries); the summary's latency, the result's and the later sinks' are until it has
+    sent: here 2 ms of segmentation, 0.5 of estimator and 0.3 of sending."""
+    clock = Clock()
+    estimator = ClockedEstimator(make_estimator("ukf", session.scene.catheter), clock, 0.0005)
+    tracker = rehearsing_loop(session, joints, ClockedSegmenter(session.frames, clock, 0.002),
+                              clock, estimator=estimator)  # fmt: skip
+    first, later = SendingSink(clock, 0.0003), MemorySink()
+    tracker._sinks.clear()
+    tracker.add_sink(first)
+    tracker.add_sink(later)
+    results = [step_at(tracker, session, joints, clock, k) for k in range(4)]
+    tracker.close()
+    assert [r.latency_s for r in first.results] == pytest.approx([0.0025] * 4, abs=1e-9)
+    for got in ([r.latency_s for r in later.results], [r.latency_s for r in results],
+                list(tracker.latency.values())):  # fmt: skip
+        assert got == pytest.approx([0.0028] * 4, abs=1e-9)
+    assert tracker.summary.latency_ms["p99"] == pytest.approx(2.8, abs=1e-6)
+
 def test_a_loop_fed_markers_times_no_segmentation(session, joints):
     clock = Clock()
     tracker = rehearsing_loop(session, joints, None, clock)

@@ -114,6 +114,11 @@ class Waiting:
     def end(self):
         self.done.set()
         self.thread.join()
+        # join returns before the system's thread has quite gone (its id still takes a
+        # priority for a moment): wait until it has.
+        deadline = time.monotonic() + 5.0
+        while os.path.exists(f"/proc/self/task/{self.id}") and time.monotonic() < deadline:
+            time.sleep(0.001)
 
 
 def test_held_threads_are_real_time_until_released_and_others_are_left_alone():

@@ -111,8 +111,8 @@ class LiveTracker:
         again with the frame's while the segmenter waits (``meanwhile``, below).
     sinks : sequence of Sink
         Called in order on the loop's thread (:mod:`tracker.live.sinks`): put the estimate
-        sender first, it is the one the latency is for, and every slow output behind a
-        :class:`~tracker.live.sinks.QueuedSink`.
+        sender first (the latency is until it has sent; its datagram carries the latency up
+        to the send), and every slow output behind a :class:`~tracker.live.sinks.QueuedSink`.
     joints : JointReceiver, optional
         Joint values for every frame, interpolated to its time; frames that carry their own
         joint values (simulation, recordings) keep them when no receiver is given.
@@ -403,7 +403,6 @@ class LiveTracker:
         self.idle.clear()
         self._priority.hold((0, None if self._capture is None else self._capture.thread_id))
         time_s = self.pace.next_time_s
-        self._rehearse_steps(time_s)  # first: the estimator's rehearsal keeps what is prepared
         self.joints.poll()
         sample = self.joints.sample(time_s)
         if sample.status in (JointStatus.OK, JointStatus.HELD):
@@ -412,6 +411,7 @@ class LiveTracker:
             self._prepare(q)
             if self._images:
                 self._predict_region(time_s, q)
+        self._rehearse_steps(time_s)
         self._rehearse(time_s)
         self.priming.add(self.monotonic() - now)
         return True
@@ -542,22 +542,13 @@ class LiveTracker:
             status |= LiveStatus.ESTIMATOR_ERROR
             s.estimator_errors += 1
             self._report_once(f"estimator:{type(exc).__name__}", f"estimator error: {exc}")
-            estimate = Estimate(
-                time_s=time_s,
-                delta_L_rad=math.nan,
-                std_rad=math.nan,
-                q_r_rad=float(q[0]),
-                flags=Flag.NO_MEASUREMENT,
-            )
+            estimate = Estimate(time_s=time_s, delta_L_rad=math.nan, std_rad=math.nan,
+                                q_r_rad=float(q[0]), flags=Flag.NO_MEASUREMENT)  # fmt: skip
         if status & INVALID and estimate.valid:
             # Held by the estimator, but not of this frame's joints: the controller must not
             # use it (valid bit clear); the flags say why.
-            estimate = dataclasses.replace(
-                estimate,
-                delta_L_rad=math.nan,
-                std_rad=math.nan,
-                flags=estimate.flags | Flag.NO_MEASUREMENT,
-            )
+            estimate = dataclasses.replace(estimate, delta_L_rad=math.nan, std_rad=math.nan,
+                                           flags=estimate.flags | Flag.NO_MEASUREMENT)  # fmt: skip
         elif estimate.valid and not status:
             self._last_delta_L_rad = float(estimate.delta_L_rad)
         self._last_steps = None if status & PREDICT_ONLY else (frame, observation)
@@ -569,9 +560,12 @@ class LiveTracker:
         s.frames_no_joints += int(bool(status & LiveStatus.NO_JOINTS))
         s.frames_clamped_joints += int(bool(status & LiveStatus.JOINTS_CLAMPED))
         s.frames_extrapolated_joints += int(bool(status & LiveStatus.JOINTS_EXTRAPOLATED))
+        # The first sink's datagram carries the latency so far; the latency is until it is sent.
+        sinks, result = self._sinks, (frame, observation, estimate)
+        self._dispatch(sinks[:1], *result, self.monotonic() - reference, status)
         latency_s = self.monotonic() - reference
         self.latency.add(latency_s)
-        self._dispatch(frame, observation, estimate, latency_s, status)
+        self._dispatch(sinks[1:], *result, latency_s, status)
         self._images = is_images
         if is_images:
             # For the next frame, now that the controller has its estimate (again with newer
@@ -588,8 +582,8 @@ class LiveTracker:
         self.cycle.add(self.monotonic() - reference)
         return LiveResult(frame, observation, estimate, latency_s, status)
 
-    def _dispatch(self, frame, observation, estimate, latency_s, status) -> None:
-        for entry in self._sinks:
+    def _dispatch(self, sinks, frame, observation, estimate, latency_s, status) -> None:
+        for entry in sinks:
             if not entry.enabled:
                 continue
             try:

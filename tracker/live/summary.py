@@ -72,7 +72,7 @@ class LiveSummary:
     sink_dropped: dict[str, int] = field(default_factory=dict)  # queued sinks behind
     sink_stalls: dict[str, int] = field(default_factory=dict)
     age_ms: dict[str, float] = field(default_factory=dict)  # image time -> processing starts
-    latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate ready
+    latency_ms: dict[str, float] = field(default_factory=dict)  # image time -> estimate sent
     # The latency's median in each third of the run (of its last 100 000 frames), ms: flat
     # unless the loop falls behind.
     latency_thirds_ms: tuple[float, ...] = ()

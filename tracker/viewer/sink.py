@@ -556,7 +556,7 @@ class RerunSink:
         time_s : float
             The frame's image time stamp, s.
         latency_s : float
-            Image time stamp (or arrival) -> estimate ready, s.
+            Image time stamp (or arrival) -> estimate sent, s.
         frames_dropped, frames_predict_only : int, optional
             Frames dropped so far (out of order, duplicate, unusable) and frames tracked
             without joint values so far (the estimator only predicted).
