@@ -139,9 +139,7 @@ def test_held_threads_are_real_time_until_released_and_others_are_left_alone():
         assert policy() == policy(waiting.id) == os.SCHED_FIFO
         assert os.sched_getparam(waiting.id).sched_priority == PRIORITY
         priority.hold([0, waiting.id])  # held already: nothing changes
-        with priority:  # a frame's step inside the hold keeps the hold's priority
-            assert policy() == os.SCHED_FIFO
-        assert policy() == os.SCHED_FIFO
+        assert set(priority.held) == {0, waiting.id}
         priority.release()
         assert priority.held == ()
         assert policy() == policy(waiting.id) == os.SCHED_OTHER
@@ -153,6 +151,44 @@ def test_held_threads_are_real_time_until_released_and_others_are_left_alone():
         waiting.end()
         own.end()
 
+
+
+def test_a_frame_s_step_carries_on_its_thread_s_hold_without_a_gap(monkeypatch):
+    """The loop's step entered while its thread is held (its wait for the frame) takes the
+    hold over: the thread is never put back to the ordinary policy in between (an ordinary
+    thread that is ready takes the processor in that moment, for milliseconds), the other
+    held threads are put back by ``release``, and the thread is put back when the step
+    ends."""
+    if not permitted():
+        pytest.fail("this test needs SCHED_FIFO: run as root or with an rtprio limit")
+    waiting = Waiting()
+    calls = []
+    set_policy = os.sched_setscheduler
+
+    def recorded(thread_id, policy_, param):
+        calls.append((thread_id, policy_ & ~getattr(os, "SCHED_RESET_ON_FORK", 0)))
+        return set_policy(thread_id, policy_, param)
+
+    priority = FramePriority()
+    try:
+        assert priority.start()
+        monkeypatch.setattr(os, "sched_setscheduler", recorded)
+        priority.hold([0, waiting.id])
+        assert calls == [(0, os.SCHED_FIFO), (waiting.id, os.SCHED_FIFO)]
+        with priority:
+            priority.release()  # the others: the wait is over
+            assert policy() == os.SCHED_FIFO and policy(waiting.id) == os.SCHED_OTHER
+            assert priority.held == ()
+        assert calls[2:] == [(waiting.id, os.SCHED_OTHER), (0, os.SCHED_OTHER)]
+        assert policy() == os.SCHED_OTHER
+        with priority:  # not held: raised on entry, put back on exit
+            assert policy() == os.SCHED_FIFO
+        assert calls[4:] == [(0, os.SCHED_FIFO), (0, os.SCHED_OTHER)]
+    finally:
+        monkeypatch.undo()
+        priority.release()
+        set_policy(0, os.SCHED_OTHER, os.sched_param(0))
+        waiting.end()
 
 def test_off_or_refused_a_hold_raises_nothing(monkeypatch):
     waiting = Waiting()

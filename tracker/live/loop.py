@@ -483,9 +483,9 @@ class LiveTracker:
             Monotonic time the item left the source (latency reference unless the source's
             times are monotonic stamps); now if not given."""
         self.idle.clear()
-        self._priority.release()  # the wait is over (prime)
         try:
-            with self._priority:
+            with self._priority:  # this thread stays raised from its wait (prime) on
+                self._priority.release()  # the capture thread's: the wait is over
                 return self._step(item, received_s)
         finally:
             self.idle.set()

@@ -97,7 +97,8 @@ class FramePriority:
                 self._held[thread_id] = saved
 
     def release(self) -> None:
-        """Put the threads raised by :meth:`hold` back (nothing when none are held)."""
+        """Put the threads raised by :meth:`hold` back (nothing when none are held; the
+        calling thread not once it has entered the context, which then puts it back)."""
         if self._held:
             held, self._held = self._held, {}
             for thread_id, saved in held.items():
@@ -109,7 +110,11 @@ class FramePriority:
         return tuple(self._held)
 
     def __enter__(self) -> FramePriority:
-        self._saved = self._raise()
+        # A calling thread that :meth:`hold` raised goes on at the priority, never put back
+        # in between: even for the moment between two calls, an ordinary thread that is
+        # ready (a tokio worker at niceness -10 was seen) takes its processor for ms.
+        held = self._held.pop(0, None)
+        self._saved = self._raise() if held is None else held
         return self
 
     def __exit__(self, *exc) -> None:
