@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numba
 import numpy as np
 import pytest
 
@@ -134,6 +135,28 @@ def test_a_rehearsed_estimator_step_changes_nothing(session, prepare_first):
             assert x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y)), field
         for u, v in zip(state_a, state_b, strict=True):
             np.testing.assert_array_equal(u, v)
+
+
+def test_a_rehearsal_leaves_the_filter_s_own_arrays_in_place(session):
+    """After a rehearsal the filter holds the very arrays it held before, of the same
+    type, layout and contents (a copy of another layout would make the compiled step
+    compile again, for seconds, on the next live frame)."""
+    recon = reconstructor_of(session)
+    observations = [recon.observe(frame) for frame in session.frames[:8]]
+    ukf = make_estimator("ukf", session.scene.catheter)
+    for observation in observations[:6]:
+        ukf.step(observation)
+    bank = ukf.inner._bank
+    before = dict(vars(bank))
+    contents = {k: v.copy() for k, v in before.items() if isinstance(v, np.ndarray)}
+    types = {k: numba.typeof(v) for k, v in before.items() if isinstance(v, np.ndarray)}
+    ukf.rehearse(dataclasses.replace(observations[6], time_s=observations[7].time_s))
+    assert vars(bank).keys() == before.keys()
+    for name, value in before.items():
+        assert vars(bank)[name] is value, name
+    for name, value in contents.items():
+        np.testing.assert_array_equal(vars(bank)[name], value, err_msg=name)
+        assert numba.typeof(vars(bank)[name]) == types[name], name
 
 
 def test_a_rehearsal_the_step_refuses_is_ignored(session):

@@ -479,7 +479,10 @@ class BendingPlaneUKF(Estimator):
         step's code and data are back in the processor's caches; ``LiveTracker.prime``). An
         observation the step refuses is ignored."""
         bank, expansion = self._bank, self._expansion
-        saved = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(bank).items()}
+        # The bank's own arrays are put back, their contents copied in: arrays of another
+        # layout would make its compiled step compile again (seconds) on the next frame.
+        saved = dict(vars(bank))
+        contents = {k: v.copy() for k, v in saved.items() if isinstance(v, np.ndarray)}
         prepared = expansion.held
         try:
             self.step(observation)
@@ -488,6 +491,9 @@ class BendingPlaneUKF(Estimator):
         finally:
             vars(bank).clear()
             vars(bank).update(saved)
+            for k, v in contents.items():
+                if saved[k].flags.writeable:
+                    np.copyto(saved[k], v)
             expansion.held = prepared
 
     def step(self, observation: Observation) -> Estimate:
