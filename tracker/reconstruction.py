@@ -15,6 +15,7 @@ first being the second on a batch of one.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -75,9 +76,8 @@ class Reconstructor:
         refuses is ignored."""
         previous = self._previous
         try:
-            self.observe(frame)
-        except ValueError:
-            pass
+            with contextlib.suppress(ValueError):  # refused: the frame's own step says why
+                self.observe(frame)
         finally:
             self._previous = previous
 

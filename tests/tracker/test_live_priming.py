@@ -791,15 +791,20 @@ def recording(calls: list, owner, name: str):
     return spy
 
 
-def primed_run(session, joints, rehearse: bool, calls: list | None = None):
-    """The session's frames through a loop primed before each, as live; its estimates."""
+def primed_run(session, joints, rehearse: bool, calls: list | None = None, report=print,
+               tune=None):  # fmt: skip
+    """The session's frames through a loop primed before each, as live; its estimates.
+    ``tune(tracker)`` is called once the loop is made."""
     memory = MemorySink()
     scene = session.scene
     tracker = LiveTracker(
         Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm),
         make_estimator("ukf", scene.catheter), [memory], joints=joints.receiver,
         segmenter=StandInSegmenter(session.frames), max_time_jump_s=1e9, rehearse=rehearse,
+        report=report,
     )  # fmt: skip
+    if tune is not None:
+        tune(tracker)
     if calls is not None:  # what the priming runs, in order
         for owner, name in ((tracker.reconstructor, "rehearse"), (tracker.estimator, "rehearse"),
                             (tracker.estimator.inner, "prepare")):  # fmt: skip
@@ -841,4 +846,36 @@ def test_priming_rehearses_the_last_frame_s_reconstruction_and_estimator_step(se
     for a, b in zip(rehearsed, plain, strict=True):
         assert (a.estimate.delta_L_rad, a.estimate.std_rad, a.estimate.flags) == (
             b.estimate.delta_L_rad, b.estimate.std_rad, b.estimate.flags
+        )
+
+
+def test_a_rehearsal_of_the_steps_that_fails_is_said_once_and_left_out(session):
+    """An estimator whose rehearsal raises (what a rehearsal must never do): the loop says
+    so once, rehearses no more, and every frame's estimate is still that of a loop that
+    never rehearsed."""
+    said, calls, loops = [], [], []
+
+    def broken(observation):
+        calls.append(observation.time_s)
+        raise RuntimeError("broken rehearsal")
+
+    def tune(tracker):
+        tracker.estimator.rehearse = broken
+        loops.append(tracker)
+
+    with_joints, without_joints = Joints(), Joints()
+    try:
+        results = primed_run(session, with_joints, True, report=said.append, tune=tune)
+        plain = primed_run(session, without_joints, False)
+    finally:
+        with_joints.close()
+        without_joints.close()
+    assert len(calls) == 1 and not loops[0].rehearse_steps
+    assert [m for m in said if "rehearsal" in m] == [
+        "the estimator's rehearsal failed and is off (broken rehearsal)"
+    ]
+    assert len(results) == len(plain) == len(session.frames)
+    for a, b in zip(results, plain, strict=True):
+        assert (a.estimate.delta_L_rad, a.estimate.std_rad) == (
+            b.estimate.delta_L_rad, b.estimate.std_rad
         )

@@ -13,7 +13,7 @@ import pytest
 
 from replay.simulation.sources import simulated_session
 from tracker.estimators import make_estimator
-from tracker.estimators.checks import CheckedEstimator
+from tracker.estimators.checks import MAX_TIME_STEP_S, CheckedEstimator
 from tracker.reconstruction import Reconstructor
 from tracker.types import Flag, Observation
 
@@ -137,15 +137,22 @@ def test_a_rehearsed_estimator_step_changes_nothing(session, prepare_first):
             np.testing.assert_array_equal(u, v)
 
 
+def stepped_filter(session, steps: int, frames: int):
+    """A checked UKF stepped through the session's first ``steps`` observations, and the
+    first ``frames`` observations."""
+    recon = reconstructor_of(session)
+    observations = [recon.observe(frame) for frame in session.frames[:frames]]
+    ukf = make_estimator("ukf", session.scene.catheter)
+    for observation in observations[:steps]:
+        ukf.step(observation)
+    return ukf, observations
+
+
 def test_a_rehearsal_leaves_the_filter_s_own_arrays_in_place(session):
     """After a rehearsal the filter holds the very arrays it held before, of the same
     type, layout and contents (a copy of another layout would make the compiled step
     compile again, for seconds, on the next live frame)."""
-    recon = reconstructor_of(session)
-    observations = [recon.observe(frame) for frame in session.frames[:8]]
-    ukf = make_estimator("ukf", session.scene.catheter)
-    for observation in observations[:6]:
-        ukf.step(observation)
+    ukf, observations = stepped_filter(session, 6, 8)
     bank = ukf.inner._bank
     before = dict(vars(bank))
     contents = {k: v.copy() for k, v in before.items() if isinstance(v, np.ndarray)}
@@ -162,11 +169,7 @@ def test_a_rehearsal_leaves_the_filter_s_own_arrays_in_place(session):
 def test_a_rehearsal_the_step_refuses_is_ignored(session):
     """A rehearsal at a time before the filter's, or of an observation the checks refuse,
     raises nothing and changes nothing."""
-    recon = reconstructor_of(session)
-    observations = [recon.observe(frame) for frame in session.frames[:6]]
-    ukf = make_estimator("ukf", session.scene.catheter)
-    for observation in observations[:5]:
-        ukf.step(observation)
+    ukf, observations = stepped_filter(session, 5, 6)
     bank = ukf.inner._bank
     state = {k: v.copy() for k, v in vars(bank).items() if isinstance(v, np.ndarray)}
     ukf.rehearse(observations[2])  # before the filter's time
@@ -175,9 +178,7 @@ def test_a_rehearsal_the_step_refuses_is_ignored(session):
     ukf.rehearse(nan)
     for name, value in state.items():
         np.testing.assert_array_equal(getattr(bank, name), value, err_msg=name)
-    want = make_estimator("ukf", session.scene.catheter)
-    for observation in observations[:5]:
-        want.step(observation)
+    want, _ = stepped_filter(session, 5, 6)
     a, b = ukf.step(observations[5]), want.step(observations[5])
     assert [getattr(a, f) for f in FIELDS] == [getattr(b, f) for f in FIELDS]
 
@@ -206,6 +207,8 @@ def test_the_checks_pass_on_only_a_rehearsal_the_step_would_accept(session):
     checked.rehearse(observations[0])  # before the last accepted
     checked.rehearse(observations[1])  # not after it
     checked.rehearse(dataclasses.replace(observations[2], time_s=math.nan))
+    far = observations[1].time_s + 2.0 * MAX_TIME_STEP_S  # a step the checks would refuse
+    checked.rehearse(dataclasses.replace(observations[2], time_s=far))
     checked.rehearse(dataclasses.replace(observations[2], q=observations[2].q * np.nan))
     assert spy.rehearsed == []
     checked.rehearse(observations[2])

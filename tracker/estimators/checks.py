@@ -285,11 +285,15 @@ class CheckedEstimator:
             informative_radius_mm=last.informative_radius_mm,
         )
 
+    def _follows(self, t: float) -> bool:
+        """Whether ``t`` follows the last accepted time, by at most ``MAX_TIME_STEP_S``."""
+        last = self._last_time_s
+        return last is None or 0.0 < t - last <= MAX_TIME_STEP_S
+
     def _time_ok(self, t: float) -> bool:
         """Whether ``t`` follows the last accepted time; a run of rejected times that agree
         among themselves is a restarted clock: the estimator starts again from them."""
-        last = self._last_time_s
-        if last is None or 0.0 < t - last <= MAX_TIME_STEP_S:
+        if self._follows(t):
             self._rejected_times = []
             return True
         run = self._rejected_times
@@ -358,8 +362,7 @@ class CheckedEstimator:
         here changes either."""
         rehearse = getattr(self.inner, "rehearse", None)
         t = float(observation.time_s)
-        last = self._last_time_s
-        if not (callable(rehearse) and math.isfinite(t)) or (last is not None and t <= last):
+        if not (callable(rehearse) and math.isfinite(t) and self._follows(t)):
             return
         if observation_problem(observation, self.n_markers, self._buffer) is None:
             rehearse(observation)

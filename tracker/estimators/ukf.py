@@ -28,6 +28,7 @@ The tip, each marker and the velocity are independent groups: a joint marker cov
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -485,9 +486,9 @@ class BendingPlaneUKF(Estimator):
         contents = {k: v.copy() for k, v in saved.items() if isinstance(v, np.ndarray)}
         prepared = expansion.held
         try:
-            self.step(observation)
-        except (ValueError, np.linalg.LinAlgError):
-            pass
+            # A step that refuses the observation leaves nothing to warm: ignored.
+            with contextlib.suppress(ValueError, np.linalg.LinAlgError):
+                self.step(observation)
         finally:
             vars(bank).clear()
             vars(bank).update(saved)
