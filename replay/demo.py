@@ -540,6 +540,9 @@ def run_demo(
             if live.output is not None:
                 out(f"cathtrack demo: rerun to {'; '.join(live.output.targets)}")
             started = time.monotonic()
+            ahead = min(len(session.frames), cameras.max_ahead)
+            if ahead > 400:  # more than half a minute on a slow machine: say what it waits for
+                out(f"cathtrack demo: rendering {ahead} image pairs ahead ...")
             ready = cameras.render_ahead()
             out(
                 f"cathtrack demo: {ready} image pairs rendered ahead ({cameras.render_ms:.0f} ms"

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import math
 import multiprocessing
@@ -18,6 +19,7 @@ import threading
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from multiprocessing import shared_memory
 
 import numpy as np
 
@@ -157,38 +159,77 @@ class RenderedSource(PacedSource):
 
 
 # ------------------------------------------------------------------------ simulated cameras
-def _render_ahead(renderer, q, delta_L_rad, seed, pairs, progress, released, max_ahead, stop):
-    """The render process: every pair in order, at most ``max_ahead`` ahead of the release.
+RING_SLOTS = 4
+"""Pairs in the shared-memory ring between the render process and the cameras."""
+RENDER_AHEAD_BYTES = 1 << 30
+"""The images :class:`SimulatedCameras` render ahead, at most, bytes."""
 
-    ``progress`` holds (pairs rendered, seconds spent rendering), ``released`` the number of
-    pairs the cameras have released; a failure goes to ``pairs`` as its message.
+
+def _ring_size(shapes) -> int:
+    return RING_SLOTS * sum(math.prod(shape) for shape in shapes)
+
+
+def _ring_slots(memory: shared_memory.SharedMemory, shapes) -> list[list[Array]]:
+    """The ring's slots over ``memory``: slot k holds one uint8 image per view."""
+    slots, offset = [], 0
+    for _ in range(RING_SLOTS):
+        views = []
+        for shape in shapes:
+            size = math.prod(shape)
+            views.append(np.ndarray(shape, np.uint8, memory.buf, offset))
+            offset += size
+        slots.append(views)
+    return slots
+
+
+def _copy_into(slot: list[Array], images) -> None:
+    for view, image in zip(slot, images, strict=True):
+        np.copyto(view, image)
+
+
+def _render_ahead(
+    renderer, q, delta_L_rad, seed, ring_name, shapes, free, filled, failures, progress,
+    released, max_ahead, stop,
+):  # fmt: skip
+    """The render process: every pair in order, at most ``max_ahead`` ahead of the release,
+    each copied into the next slot of the shared-memory ring as soon as one is free.
+
+    ``free`` and ``filled`` count the ring's free and filled slots, ``progress`` holds (pairs
+    rendered, seconds spent rendering), ``released`` the number of pairs the cameras have
+    released; a failure goes to ``failures`` as its message.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the demo's to handle
+    memory = shared_memory.SharedMemory(ring_name)
+    slots = _ring_slots(memory, shapes)
     try:
         rng = np.random.default_rng(seed)
-        for k in range(len(q)):
-            if k == max_ahead:
-                with contextlib.suppress(OSError, AttributeError):
-                    # The session runs: render the rest below the loop's priority.
-                    os.nice(10)
-            while k - released.value >= max_ahead:
-                if stop.wait(0.005):
-                    break
-            if stop.is_set():
-                break
-            started = time.perf_counter()
-            images = renderer.render(q[k], delta_L_rad[k], rng).images
-            pairs.put((k, tuple(images)))
-            with progress.get_lock():
-                progress[0] += 1
-                progress[1] += time.perf_counter() - started
-        # The queue's pairs are still on their way: stay until they are all taken.
-        while released.value < len(q) and not stop.wait(0.05):
-            pass
+        pending: collections.deque = collections.deque()  # rendered, not yet in the ring
+        rendered = filled_count = 0
+        while filled_count < len(q) and not stop.is_set():
+            can_render = rendered < len(q) and rendered - released.value < max_ahead
+            # Fill a free slot first (at once when there is more to render, else waiting).
+            if pending and free.acquire(block=not can_render, timeout=0.05):
+                _copy_into(slots[filled_count % RING_SLOTS], pending.popleft())
+                filled_count += 1
+                filled.release()
+            elif can_render:
+                if rendered == max_ahead:
+                    with contextlib.suppress(OSError, AttributeError):
+                        # The session runs: render the rest below the loop's priority.
+                        os.nice(10)
+                started = time.perf_counter()
+                pending.append(renderer.render(q[rendered], delta_L_rad[rendered], rng).images)
+                rendered += 1
+                with progress.get_lock():
+                    progress[0] += 1
+                    progress[1] += time.perf_counter() - started
+            elif not pending:
+                stop.wait(0.005)  # max_ahead pairs wait for their release
     except Exception as exc:  # handed to the cameras, which raise it in the loop's thread
-        pairs.put((-1, f"{type(exc).__name__}: {exc}"))
-    if stop.is_set():
-        pairs.cancel_join_thread()  # the cameras stopped reading: do not wait for them
+        failures.put(f"{type(exc).__name__}: {exc}")
+    finally:
+        del slots  # the ring's arrays first: the memory does not close under them
+        memory.close()
 
 
 FETCH_LEAD_S = 0.01
@@ -201,9 +242,14 @@ class SimulatedCameras:
     Pair ``k`` shows the catheter at the frames' joints and true delta_L at ``t_k``. The pairs
     are rendered in a separate process, in order and ahead of time (at most ``max_ahead``
     pairs ahead), so that rendering never takes the loop's interpreter nor, once
-    :meth:`render_ahead` has waited for them before the session, its processor; pair ``k`` is
-    then released at its exposure time ``start_s + t_k`` on the monotonic clock (``start_s``
-    given to :meth:`start`) and stamped with it, as a camera with a hardware time stamp would
+    :meth:`render_ahead` has waited for them before the session, its processor. They reach
+    this process through a ring of :data:`RING_SLOTS` pairs in shared memory, each copied in
+    by the render process as soon as a slot is free, long before it is due: taking a pair
+    is a copy out of the ring (a fraction of a millisecond), not a transfer through a pipe
+    that needs the render process on a processor while the loop waits (5 ms at the median
+    and up to 29 ms on a slow machine, which made frames late). Pair ``k`` is then released
+    at its exposure time ``start_s + t_k`` on the monotonic clock (``start_s`` given to
+    :meth:`start`) and stamped with it, as a camera with a hardware time stamp would
     deliver it. The source is ``live``: the loop captures it in its own thread and takes the
     newest pair. A pair that still comes from the renderer after its exposure time (a session
     longer than ``max_ahead`` pairs on a slow machine) is released late, stamped with its
@@ -212,15 +258,19 @@ class SimulatedCameras:
     Parameters
     ----------
     renderer : replay.simulation.render.Renderer
+        Its ``backgrounds`` give the images' sizes.
     frames : sequence of Frame
         The session's frames (their joints, truth and times; their points are ignored).
     seed : int
         Seeds the sensor noise.
     late_after_s : float
         A pair released later than this after its exposure counts as late, s.
-    max_ahead : int
-        Pairs rendered and not yet released, at most (about 0.6 MB each: 320 pairs, 16 s at
-        20 fps, are 200 MB).
+    max_ahead : int, optional
+        Pairs rendered and not yet released, at most (default: as many as
+        :data:`RENDER_AHEAD_BYTES` hold, in the render process: 1747 pairs of 640x480, 87 s
+        at 20 fps). Past them, the rest is rendered during the session, at a lower priority
+        than the loop; a machine that renders a pair in more than about a frame period then
+        releases them late (one where a pair took 32 ms did, in a 60 s demo with 320 ahead).
     """
 
     time_is_monotonic = True
@@ -232,8 +282,12 @@ class SimulatedCameras:
         frames: Sequence[Frame],
         seed: int = 0,
         late_after_s: float = 0.025,
-        max_ahead: int = 320,
+        max_ahead: int | None = None,
     ) -> None:
+        shapes = tuple(tuple(np.shape(b)) for b in renderer.backgrounds)
+        pair_bytes = sum(math.prod(shape) for shape in shapes)
+        if max_ahead is None:
+            max_ahead = max(RENDER_AHEAD_BYTES // pair_bytes, RING_SLOTS)
         self.times_s = np.array([float(f.time_s) for f in frames])
         self.truth_rad = np.array([float(f.delta_L_true_rad) for f in frames])
         self.late_after_s = float(late_after_s)
@@ -243,8 +297,12 @@ class SimulatedCameras:
         self.released = 0
         self._truth: dict[float, float] = {}
         self._stop = threading.Event()
+        self._memory = shared_memory.SharedMemory(create=True, size=_ring_size(shapes))
+        self._slots = _ring_slots(self._memory, shapes)
         context = multiprocessing.get_context("spawn")  # no fork of a threaded process
-        self._pairs = context.Queue()
+        self._free = context.Semaphore(RING_SLOTS)
+        self._filled = context.Semaphore(0)
+        self._failures = context.Queue()
         self._progress = context.Array("d", 2)
         self._released = context.Value("l", 0)
         self._stop_render = context.Event()
@@ -252,8 +310,9 @@ class SimulatedCameras:
         self._process = context.Process(
             target=_render_ahead,
             args=(
-                renderer, q, self.truth_rad, seed, self._pairs, self._progress,
-                self._released, self.max_ahead, self._stop_render,
+                renderer, q, self.truth_rad, seed, self._memory.name, shapes, self._free,
+                self._filled, self._failures, self._progress, self._released,
+                self.max_ahead, self._stop_render,
             ),
             name="simulated-cameras",
             daemon=True,
@@ -281,10 +340,18 @@ class SimulatedCameras:
         target = min(self.times_s.size, self.max_ahead)
         deadline = time.monotonic() + timeout_s
         while self.rendered < target and time.monotonic() < deadline:
-            if not self._process.is_alive():
-                raise RuntimeError("the simulated cameras' renderer stopped")
+            self._check_renderer()
             time.sleep(0.01)
         return self.rendered
+
+    def _check_renderer(self) -> None:
+        """Raise the render process's failure, or that it has stopped, if it has."""
+        with contextlib.suppress(queue.Empty):
+            raise RuntimeError(
+                f"the simulated cameras' renderer failed: {self._failures.get_nowait()}"
+            )
+        if not self._process.is_alive():
+            raise RuntimeError("the simulated cameras' renderer stopped")
 
     def start(self, start_s: float) -> SimulatedCameras:
         """Set the monotonic time of the session's time 0 (before iterating)."""
@@ -304,24 +371,22 @@ class SimulatedCameras:
             raise RuntimeError("SimulatedCameras.start(start_s) was not called")
         for k, t in enumerate(self.times_s):
             exposure_s = self.start_s + float(t)
-            # Take the pair from the renderer shortly before its exposure rather than right
-            # after the last pair was released: unpacking it holds the interpreter, and right
-            # after a release the loop is working on that pair.
+            # Take the pair out of the ring shortly before its exposure rather than right
+            # after the last pair was released: right after a release the loop is working
+            # on that pair.
             early = exposure_s - FETCH_LEAD_S - time.monotonic()
             if early > 0 and self._stop.wait(early):
                 return
-            images = None
-            while images is None:
+            while not self._filled.acquire(timeout=0.05):
                 if self._stop.is_set():
                     return
-                try:
-                    index, images = self._pairs.get(timeout=0.05)
-                except queue.Empty:
-                    if not self._process.is_alive():
-                        raise RuntimeError("the simulated cameras' renderer stopped") from None
-                    continue
-                if index < 0:
-                    raise RuntimeError(f"the simulated cameras' renderer failed: {images}")
+                self._check_renderer()
+            if self._stop.is_set():
+                return
+            # Copied out: the loop keeps a frame's images (its sinks, its rehearsal) after
+            # the slot has been filled again.
+            images = tuple(slot.copy() for slot in self._slots[k % RING_SLOTS])
+            self._free.release()
             wait = exposure_s - time.monotonic()
             if wait > 0:
                 if self._stop.wait(wait):
@@ -333,12 +398,17 @@ class SimulatedCameras:
             yield ImageSet(exposure_s, images)
 
     def close(self) -> None:
-        """Stop releasing and rendering; end the render process."""
+        """Stop releasing and rendering; end the render process; free the ring."""
         self._stop.set()
         self._stop_render.set()
         self._process.join(2.0)
         if self._process.is_alive():
             self._process.terminate()
             self._process.join(1.0)
-        self._pairs.close()
-        self._pairs.cancel_join_thread()
+        self._failures.close()
+        self._failures.cancel_join_thread()
+        if self._memory is not None:
+            self._slots = []
+            self._memory.close()
+            self._memory.unlink()
+            self._memory = None

@@ -15,7 +15,7 @@ from tests.tracker.segmentation_common import (
     assert_same_views,
     flickering_scene,
 )
-from tracker.vision import parallel
+from tracker.vision import parallel, worker_lag
 from tracker.vision.pair import PairSegmenter
 from tracker.vision.parallel import MAX_POINTS, ParallelPairSegmenter, pair_segmenter
 
@@ -330,13 +330,22 @@ def test_views_moved_here_and_back_with_their_state_give_the_same_results(setup)
         np.testing.assert_array_equal(a, b)
 
 
+_add_frame = worker_lag.LagWatch.add
+
+
+def counting_every_wait(self, own_s, wait_s):
+    """LagWatch.add with every wait lagged (with LAG_S < 0: longer than a view of no time)."""
+    return _add_frame(self, -1.0, wait_s)
+
+
 @pytest.mark.parametrize("deferred", [True, False])
 def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monkeypatch, deferred):
-    """Waits longer than LAG_S after the caller's own view in LAG_COUNT of the last
-    LAG_FRAMES frames (here: every wait counts) move the views here between frames: at the
-    next settle, or at the end of a frame segmented with settle=True; they go back RETRY_S
-    later, twice as long after the next move."""
-    monkeypatch.setattr(parallel, "LAG_S", -1.0)
+    """Waits that count as lagged (worker_lag.LagWatch; here: every wait) in LAG_COUNT of
+    the last LAG_FRAMES frames move the views here between frames: at the next settle, or at
+    the end of a frame segmented with settle=True; they go back RETRY_S later, twice as long
+    after the next move."""
+    monkeypatch.setattr(worker_lag, "LAG_S", -1.0)
+    monkeypatch.setattr(worker_lag.LagWatch, "add", counting_every_wait)
     pairs = setup[3]
     with make(setup, ParallelPairSegmenter) as segmenter:
 
@@ -345,7 +354,7 @@ def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monk
             if deferred:
                 segmenter.settle()
 
-        for k in range(parallel.GRACE_FRAMES + parallel.LAG_COUNT):
+        for k in range(worker_lag.GRACE_FRAMES + worker_lag.LAG_COUNT):
             assert not segmenter.here
             frame(k)
         assert segmenter.here and segmenter.moves == 1
@@ -355,7 +364,7 @@ def test_a_worker_that_keeps_the_caller_waiting_hands_its_views_over(setup, monk
         segmenter._here_since -= parallel.RETRY_S + 1.0
         frame(0)  # back to the worker...
         assert not segmenter.here
-        for k in range(parallel.GRACE_FRAMES + parallel.LAG_COUNT):  # ...held up again
+        for k in range(worker_lag.GRACE_FRAMES + worker_lag.LAG_COUNT):  # ...held up again
             frame(k)
         assert segmenter.here and segmenter.moves == 2
         assert segmenter._retry_s == 2 * parallel.RETRY_S

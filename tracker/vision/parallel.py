@@ -28,7 +28,6 @@ process on its processor) hands its views over between frames, and takes them ba
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import multiprocessing
 import os
@@ -50,6 +49,7 @@ from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
 from tracker.vision.segmentation import ViewSegmentation
 from tracker.vision.settings import DEFAULT_SETTINGS, SegmentationSettings, check_image
 from tracker.vision.view_record import read_views, write_views
+from tracker.vision.worker_lag import LagWatch
 
 Array = np.ndarray
 
@@ -70,17 +70,9 @@ _SLOTS = 2  # image slots per view: a request never writes the slot of the one b
 _REQUEST, _KIND, _SLOT, _ANSWER, _ANSWER_BYTES, _ANSWER_VIEWS = range(6)
 _COUNTS = 8
 _SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP, _HAND_OVER, _TAKE_BACK = range(1, 8)
-# A worker that keeps the caller waiting (another process on its processor) gives its views
-# back: when the caller waited more than LAG_S for it after its own view in LAG_COUNT of the
-# last LAG_FRAMES frames (2%: the tail of the latency, not only its median; quiet, the wait
-# is 0.4 ms at the median and under 2 ms in every frame, measured). They go to the worker
-# again RETRY_S later, twice as long after each move (up to MAX_RETRY_S).
-# The first GRACE_FRAMES frames with the worker do not count: a first frame loads what it
-# needs and searches whole images (100 ms has been seen), and the next few start cold.
-LAG_S = 0.002
-LAG_FRAMES = 200
-LAG_COUNT = 4
-GRACE_FRAMES = 10
+# A worker that keeps the caller waiting longer than a view of its own gives its views back
+# (:class:`tracker.vision.worker_lag.LagWatch`). They go to the worker again RETRY_S later,
+# twice as long after each move (up to MAX_RETRY_S).
 RETRY_S = 30.0
 MAX_RETRY_S = 600.0
 
@@ -195,9 +187,8 @@ class ParallelPairSegmenter:
         self.here = False  # the worker's views segmented here for now (it kept us waiting)
         self._here_since = 0.0
         self._retry_s = RETRY_S
-        self._lagged: collections.deque[bool] = collections.deque(maxlen=LAG_FRAMES)
+        self._lag = LagWatch()
         self._move_here = False
-        self._grace = GRACE_FRAMES  # frames with the worker before its waits count
         self.moves = 0  # times the views came here
         self.frames = self.frames_here = 0
         self._process = self._bell = self._memory = self._shared = None
@@ -403,21 +394,18 @@ class ParallelPairSegmenter:
         camera = self.local.cameras[0]
         # The worker's answer is taken whatever happens here, so that the next request
         # gets its own.
+        started_s = time.monotonic()
         try:
             first = camera.in_camera_frame(
                 camera.segment(images[0], predicted_px[0], settle=settle)
             )
+            own_s = time.monotonic() - started_s
             if meanwhile is not None:
                 meanwhile()
         finally:
-            own_s = time.monotonic()
+            waited_from = time.monotonic()
             others = self._others(sent, images, predicted_px, settle)
-        lagged = time.monotonic() - own_s > LAG_S
-        if self._grace:
-            self._grace -= 1
-        else:
-            self._lagged.append(lagged)
-        if lagged and sum(self._lagged) >= LAG_COUNT:
+        if self._lag.add(own_s, time.monotonic() - waited_from):
             self._move_here = True  # done between frames, off the critical path
         pair = combine_views(self.segmenter, (first, *others), self.rig)
         if settle:  # nothing is deferred: this is between frames
@@ -443,10 +431,10 @@ class ParallelPairSegmenter:
         (the worker settles its own as soon as it has answered, on its processor).
 
         Between frames, too, the worker's views come here when it has kept the caller
-        waiting (another process on its processor: :data:`LAG_S`), and go back to it
-        :data:`RETRY_S` later (twice that after each move): each move takes their state along
-        (about 10 ms, once). A frame
-        segmented with ``settle=True`` does this itself."""
+        waiting longer than a view of its own too often
+        (:class:`~tracker.vision.worker_lag.LagWatch`), and go back to it :data:`RETRY_S`
+        later (twice that after each move): each move takes their state along (about 10 ms,
+        once). A frame segmented with ``settle=True`` does this itself."""
         self.local.settle()
         self._between_frames()
 
@@ -470,7 +458,7 @@ class ParallelPairSegmenter:
     def _take_views(self) -> None:
         """The worker's views, their state included, segmented here from now on."""
         self._move_here = False
-        self._lagged.clear()
+        self._lag.restart()
         if not self._request(_HAND_OVER):
             return
         cameras = pickle.loads(self._payload())
@@ -494,7 +482,7 @@ class ParallelPairSegmenter:
         if self._request(_TAKE_BACK):
             self._answer()
             self.here = False
-            self._grace = GRACE_FRAMES
+            self._lag.restart()
 
     def _payload(self) -> bytes:
         """The next message from the worker that is not a wake-up signal."""
