@@ -17,7 +17,7 @@ from tracker.estimators import make_estimator
 from tracker.io.datagrams import encode_joints
 from tracker.io.udp import JointReceiver
 from tracker.live.loop import PRIME_LEAD_S, ROI_POINTS, LiveTracker
-from tracker.live.pacing import PRIME_SPREADS, FramePace
+from tracker.live.pacing import PRIME_FIRST_S, PRIME_SPREADS, FramePace
 from tracker.live.sinks import MemorySink
 from tracker.live.sources import ImageSet
 from tracker.reconstruction import Reconstructor
@@ -168,7 +168,7 @@ def test_priming_drains_the_joints_predicts_the_region_and_pauses_the_sinks(sess
     assert tracker.pace.due_s() == pytest.approx(due_s)
     joints.send_until(session.frames[3].time_s - 0.001)  # the controller streams on
     received = tracker.joints.counts.received
-    assert not tracker.prime(due_s - 2 * PRIME_LEAD_S)  # too early
+    assert not tracker.prime(due_s - 2 * PRIME_LEAD_S - PRIME_FIRST_S)  # too early
     assert tracker.idle.is_set() and tracker.joints.counts.received == received
 
     assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
@@ -559,12 +559,14 @@ def test_priming_starts_when_it_ends_a_lead_before_the_frame(session, joints):
     assert tracker.wait_s(clock.now, 0.002) == 0.002  # no pace yet: the joints' poll
     for k in range(3):
         step_at(tracker, session, joints, clock, k)
-    # Due at 10.15; the first priming's time is not known yet: a lead before.
-    assert tracker.wait_s(10.11, 0.002) == 0.002
-    assert tracker.wait_s(10.1465, 0.002) == pytest.approx(10.15 - PRIME_LEAD_S - 10.1465)
-    assert tracker.wait_s(10.149, 0.002) == 0.0  # late for it: at once
+    # Due at 10.15; the first priming's time is not known yet: taken as PRIME_FIRST_S.
+    first_s = 10.15 - PRIME_LEAD_S - PRIME_FIRST_S
+    assert tracker.wait_s(first_s - 0.004, 0.002) == 0.002
+    assert tracker.wait_s(first_s - 0.0015, 0.002) == pytest.approx(0.0015)
+    assert tracker.wait_s(first_s + 0.001, 0.002) == 0.0  # late for it: at once
     joints.send_until(session.frames[3].time_s - 0.001)
-    clock.now = 10.15 - PRIME_LEAD_S
+    assert not tracker.prime(first_s - 0.0001)
+    clock.now = first_s + 1e-9
     assert tracker.prime(clock.now)
     assert tracker.wait_s(clock.now, 0.002) == 0.002  # primed: only the joints' poll
     clock.now = 10.15

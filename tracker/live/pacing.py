@@ -73,9 +73,17 @@ PRIME_SPREADS = 3.0
 duration alone would have it (a priming that runs long must not hold up the frame)."""
 
 
+PRIME_FIRST_S = 0.01
+"""How long the first priming is taken to last before one has been timed, s: the first
+runs cold (its rehearsal the first of a session's code and data), 5-8 ms on a slow 2-core
+machine, against a median of 4; started as if it took none, it held up the frame it
+primed for by 5.6 ms."""
+
+
 class PrimeTiming:
     """How long the loop's priming takes (running mean and mean deviation), and so when to
-    start it for a frame: early enough that it ends the lead before the frame is due."""
+    start it for a frame: early enough that it ends the lead before the frame is due (the
+    first as if it took :data:`PRIME_FIRST_S`)."""
 
     def __init__(self) -> None:
         self.mean_s = 0.0
@@ -91,4 +99,5 @@ class PrimeTiming:
 
     def start_s(self, due_s: float, lead_s: float) -> float:
         """When to start priming for a frame due at ``due_s`` to end ``lead_s`` before it."""
-        return due_s - lead_s - self.mean_s - PRIME_SPREADS * self.spread_s
+        took_s = self.mean_s if self.mean_s else PRIME_FIRST_S
+        return due_s - lead_s - took_s - PRIME_SPREADS * self.spread_s
