@@ -165,10 +165,6 @@ RENDER_AHEAD_BYTES = 1 << 30
 """The images :class:`SimulatedCameras` render ahead, at most, bytes."""
 
 
-def _ring_size(shapes) -> int:
-    return RING_SLOTS * sum(math.prod(shape) for shape in shapes)
-
-
 def _ring_slots(memory: shared_memory.SharedMemory, shapes) -> list[list[Array]]:
     """The ring's slots over ``memory``: slot k holds one uint8 image per view."""
     slots, offset = [], 0
@@ -297,7 +293,7 @@ class SimulatedCameras:
         self.released = 0
         self._truth: dict[float, float] = {}
         self._stop = threading.Event()
-        self._memory = shared_memory.SharedMemory(create=True, size=_ring_size(shapes))
+        self._memory = shared_memory.SharedMemory(create=True, size=RING_SLOTS * pair_bytes)
         self._slots = _ring_slots(self._memory, shapes)
         context = multiprocessing.get_context("spawn")  # no fork of a threaded process
         self._free = context.Semaphore(RING_SLOTS)
@@ -346,10 +342,12 @@ class SimulatedCameras:
 
     def _check_renderer(self) -> None:
         """Raise the render process's failure, or that it has stopped, if it has."""
-        with contextlib.suppress(queue.Empty):
-            raise RuntimeError(
-                f"the simulated cameras' renderer failed: {self._failures.get_nowait()}"
-            )
+        try:
+            failure = self._failures.get_nowait()
+        except queue.Empty:
+            failure = None
+        if failure is not None:
+            raise RuntimeError(f"the simulated cameras' renderer failed: {failure}")
         if not self._process.is_alive():
             raise RuntimeError("the simulated cameras' renderer stopped")
 
@@ -409,6 +407,9 @@ class SimulatedCameras:
         self._failures.cancel_join_thread()
         if self._memory is not None:
             self._slots = []
-            self._memory.close()
+            # A capture thread that did not stop in time may still be copying a pair out:
+            # the mapping then goes with its last array; the name goes now.
+            with contextlib.suppress(BufferError):
+                self._memory.close()
             self._memory.unlink()
             self._memory = None

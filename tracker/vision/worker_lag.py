@@ -38,14 +38,12 @@ class LagWatch:
 
     def __init__(self) -> None:
         self._lagged: collections.deque[bool] = collections.deque(maxlen=LAG_FRAMES)
-        self._count = 0
         self._grace = GRACE_FRAMES
 
     def restart(self) -> None:
         """Forget the frames so far, and give the next GRACE_FRAMES frames their grace (a
         worker that has just taken its views back)."""
         self._lagged.clear()
-        self._count = 0
         self._grace = GRACE_FRAMES
 
     def add(self, own_s: float, wait_s: float) -> bool:
@@ -55,13 +53,10 @@ class LagWatch:
             self._grace -= 1
             return False
         lagged = wait_s > LAG_S and wait_s > own_s
-        if len(self._lagged) == self._lagged.maxlen:
-            self._count -= self._lagged[0]
         self._lagged.append(lagged)
-        self._count += lagged
-        return lagged and self._count >= LAG_COUNT
+        return lagged and self.lagged >= LAG_COUNT  # counted only on a frame that lagged
 
     @property
     def lagged(self) -> int:
         """Frames that lagged among the last LAG_FRAMES counted."""
-        return self._count
+        return sum(self._lagged)
