@@ -42,29 +42,39 @@ def flickering_scene(seed: int, vibration_px: float):
 
 def view_fields(view) -> list:
     """Every field of a ViewSegmentation (the photometry's expanded), for comparison."""
+    return [value for _, value in named_view_fields(view)]
+
+
+def named_view_fields(view) -> list[tuple[str, object]]:
+    """:func:`view_fields` with their names (``photometry.gain``...), for messages."""
     out = []
     for f in dataclasses.fields(view):
         value = getattr(view, f.name)
         if f.name == "photometry" and value is not None:
-            out += [getattr(value, g.name) for g in dataclasses.fields(value)]
+            out += [(f"photometry.{g.name}", getattr(value, g.name))
+                    for g in dataclasses.fields(value)]
         else:
-            out.append(value)
+            out.append((f.name, value))
     return out
 
 
-def assert_same(a, b):
-    """The same type and value, bit for bit (NaNs included) for arrays."""
-    assert type(a) is type(b)
+def assert_same(a, b, what: str = ""):
+    """The same type and value, bit for bit (NaNs included) for arrays; ``what`` names
+    the value in the message."""
+    assert type(a) is type(b), what
     if isinstance(a, np.ndarray):
-        assert a.dtype == b.dtype and a.shape == b.shape
-        assert a.tobytes() == b.tobytes()
+        assert a.dtype == b.dtype and a.shape == b.shape, what
+        if a.tobytes() != b.tobytes():
+            with np.errstate(invalid="ignore"):
+                off = np.nanmax(np.abs(a.astype(float) - b.astype(float)), initial=0.0)
+            raise AssertionError(f"{what} differs (largest difference {off:.3g}):\n{a!r}\n{b!r}")
     elif isinstance(a, float):
-        assert a == b or (np.isnan(a) and np.isnan(b))
+        assert a == b or (np.isnan(a) and np.isnan(b)), f"{what}: {a!r} != {b!r}"
     else:
-        assert a == b
+        assert a == b, f"{what}: {a!r} != {b!r}"
 
 
-def assert_same_views(a, b):
+def assert_same_views(a, b, what: str = "view"):
     """Two ViewSegmentations equal in every field (:func:`assert_same`)."""
-    for x, y in zip(view_fields(a), view_fields(b), strict=True):
-        assert_same(x, y)
+    for (name, x), (_, y) in zip(named_view_fields(a), named_view_fields(b), strict=True):
+        assert_same(x, y, f"{what}: {name}")

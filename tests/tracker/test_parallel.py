@@ -70,12 +70,16 @@ def run_frames(segmenter, setup, rehearse=True, before_settle=None):
 
 
 def assert_same_results(expected, got):
-    for a, b in zip(expected, got, strict=True):
-        for x, y in zip((*a.uv, *a.cov, a.rejected), (*b.uv, *b.cov, b.rejected), strict=True):
-            assert_same(x, y)
-        assert a.tip_refined == b.tip_refined
-        for va, vb in zip(a.views, b.views, strict=True):
-            assert_same_views(va, vb)
+    """Frame by frame, the views first (the combined rows follow from them), then the rows;
+    a difference names its frame, view and field."""
+    for k, (a, b) in enumerate(zip(expected, got, strict=True)):
+        for v, (va, vb) in enumerate(zip(a.views, b.views, strict=True)):
+            assert_same_views(va, vb, f"frame {k}, view {v}")
+        rows = zip((*a.uv, *a.cov, a.rejected), (*b.uv, *b.cov, b.rejected), strict=True)
+        names = [f"uv[{v}]" for v in range(len(a.uv))] + [f"cov[{v}]" for v in range(len(a.cov))]
+        for name, (x, y) in zip([*names, "rejected"], rows, strict=True):
+            assert_same(x, y, f"frame {k}, {name}")
+        assert a.tip_refined == b.tip_refined, f"frame {k}"
 
 
 def test_the_worker_gives_what_one_process_gives_bit_for_bit(setup):
