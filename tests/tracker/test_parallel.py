@@ -304,8 +304,9 @@ def test_a_reset_is_taken_up_by_the_worker_before_the_next_request(setup):
         segmenter.segment(pairs[0])
         segmenter.reset()
         control = segmenter._shared.control
-        assert control[parallel._ANSWER] == control[parallel._REQUEST] == segmenter._seq
-        assert control[parallel._KIND] == parallel._RESET
+        assert control[parallel._ANSWER] == segmenter._seq
+        seq, kind, _ = parallel.request_of(int(control[parallel._REQUEST]))
+        assert seq == segmenter._seq and kind == parallel._RESET
         segmenter.segment(pairs[1])
         assert segmenter.parallel
 
@@ -396,3 +397,100 @@ def test_a_due_move_waits_for_settle_not_for_the_priming(setup):
         assert not segmenter.here and segmenter.moves == 0
         segmenter.settle()
         assert segmenter.here and segmenter.moves == 1
+
+
+class _PostingControl:
+    """The control words, with the caller posting ``then`` (a request word) just after the
+    worker's ``after``-th read of the request ``word``: a frame's request that comes while
+    the worker takes up a rehearsal."""
+
+    def __init__(self, control, word: int, after: int, then: int) -> None:
+        self.control, self.word, self.after, self.then = control, word, after, then
+        self.reads = 0
+
+    def __getitem__(self, index):
+        value = self.control[index]
+        if index == parallel._REQUEST and int(value) == self.word:
+            self.reads += 1
+            if self.reads == self.after:
+                self.control[parallel._REQUEST] = self.then
+        return value
+
+    def __setitem__(self, index, value):
+        self.control[index] = value
+
+
+class _RecordingCamera:
+    """A worker's camera that records what it is asked to do (the image's first pixel
+    says which frame)."""
+
+    def __init__(self) -> None:
+        self.calls = []
+
+    def segment(self, image, points, settle=True):
+        self.calls.append(("segment", int(image[0, 0])))
+        return int(image[0, 0])
+
+    def rehearse(self, image, points):
+        self.calls.append(("rehearse", int(image[0, 0])))
+
+    def in_camera_frame(self, seg):
+        return seg
+
+    def settle(self):
+        self.calls.append(("settle", None))
+
+
+@pytest.mark.parametrize("after", [1, 2, 3])
+def test_a_frame_posted_while_the_worker_takes_up_a_rehearsal_is_segmented_once(after):
+    """The caller posts a rehearsal and, without waiting, the frame: whenever the frame's
+    request lands while the worker reads the rehearsal's, the worker segments the frame
+    once, the frame's image, and answers with the frame's number (the request was three
+    words once: read between them, a frame was segmented twice and its background model
+    updated twice)."""
+    import threading
+
+    from tracker.live.priority import FramePriority
+
+    shapes = [(4, 4)]
+    memory = shared_memory.SharedMemory(create=True, size=parallel._Shared.size(shapes))
+    caller, worker = parallel.multiprocessing.Pipe()
+    try:
+        shared = parallel._Shared(memory, shapes)
+        shared.slots[0][0][:] = 10  # the rehearsal's image (the last frame's)...
+        shared.slots[0][1][:] = 20  # ...and the frame's
+        shared.control[parallel._COUNTS] = -1  # no points
+        rehearsal = parallel.request_word(1, parallel._REHEARSE, 0)
+        frame = parallel.request_word(2, parallel._SEGMENT, 1)
+        shared.control = _PostingControl(shared.control, rehearsal, after, frame)
+        camera = _RecordingCamera()
+        collection = type("Collection", (), {"collect": lambda self: None})()
+        thread = threading.Thread(
+            target=parallel._work,
+            args=(worker, shared, [camera], None, 0.0, collection, FramePriority(False)),
+            daemon=True,
+        )
+        thread.start()
+        assert caller.poll(5.0)  # ready
+        caller.recv_bytes()
+        shared.control[parallel._REQUEST] = rehearsal
+        caller.send_bytes(b"")
+        deadline = parallel.time.monotonic() + 5.0
+        while shared.control[parallel._ANSWER] != 2 and parallel.time.monotonic() < deadline:
+            parallel.time.sleep(0.001)
+        assert shared.control[parallel._ANSWER] == 2
+        segments = [c for c in camera.calls if c[0] == "segment"]
+        assert segments == [("segment", 20)]
+        assert all(image == 10 for kind, image in camera.calls if kind == "rehearse")
+        stop = parallel.request_word(3, parallel._STOP, 0)
+        shared.control[parallel._REQUEST] = stop
+        caller.send_bytes(b"")
+        thread.join(5.0)
+        assert not thread.is_alive()
+    finally:
+        caller.close()
+        worker.close()
+        shared.control = shared.control.control
+        shared.release()
+        memory.close()
+        memory.unlink()

@@ -66,8 +66,9 @@ SPIN_S = 0.02
 REHEARSAL_SPIN_S = 0.02
 MAX_POINTS = 64  # predicted points per view passed as they are (more: their bounding box)
 _SLOTS = 2  # image slots per view: a request never writes the slot of the one before
-# The control words in the shared memory (int64), then each worker view's point count.
-_REQUEST, _KIND, _SLOT, _ANSWER, _ANSWER_BYTES, _ANSWER_VIEWS = range(6)
+# The control words in the shared memory (int64), then each worker view's point count. A
+# request is one word (request_word): its sequence number, kind and image slot in one store.
+_REQUEST, _ANSWER, _ANSWER_BYTES, _ANSWER_VIEWS = range(4)
 _COUNTS = 8
 _SEGMENT, _REHEARSE, _RESET, _BACKGROUNDS, _STOP, _HAND_OVER, _TAKE_BACK = range(1, 8)
 # A worker that keeps the caller waiting longer than a view of its own gives its views back
@@ -285,10 +286,8 @@ class ParallelPairSegmenter:
         if predicted is not None:
             for k, v in enumerate(self._remote):
                 control[_COUNTS + k] = _put_points(predicted[v], shared.points[k])
-        control[_KIND] = kind
-        control[_SLOT] = slot
         self._seq += 1
-        control[_REQUEST] = self._seq  # last: the worker reads the rest once it sees it
+        control[_REQUEST] = request_word(self._seq, kind, slot)  # last: then the points are in
         try:
             self._bell.send_bytes(b"")
         except (OSError, ValueError) as exc:
@@ -596,8 +595,8 @@ def _shut(process, bell, shared, memory, wait_s: float = 2.0) -> None:
     not stopped within ``wait_s`` is ended (0: at once, one that failed)."""
     if bell is not None:
         if shared is not None and process is not None and process.is_alive():
-            shared.control[_KIND] = _STOP
-            shared.control[_REQUEST] += 1
+            seq, _, _ = request_of(int(shared.control[_REQUEST]))
+            shared.control[_REQUEST] = request_word(seq + 1, _STOP, 0)
         # The wake-up, or the end of the pipe below: either stops it (a pipe that is already
         # broken, a worker that died, needs neither).
         with contextlib.suppress(OSError, ValueError):
@@ -690,8 +689,8 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
                     data = wake.recv_bytes()  # EOFError once the caller has closed its end
                     if data:  # views given back: kept for the request that follows
                         payload.append(data)
-        seen = int(control[_REQUEST])
-        kind, slot = int(control[_KIND]), int(control[_SLOT])
+        seen = int(control[_REQUEST])  # one read: this request whole, or the next whole
+        seq, kind, slot = request_of(seen)
         spin_until = 0.0
         if kind == _SEGMENT:
             with waiting:  # the frame's priority until its answer is out
@@ -707,7 +706,7 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
                     answer = ("ok", views)
                 except Exception as exc:  # noqa: BLE001 (raised again in the caller)
                     answer = ("error", exc)
-                _answer_with(shared, seen, answer)
+                _answer_with(shared, seq, answer)
             wake.send_bytes(b"")
             for camera in cameras:  # the caller's settle, off its critical path
                 camera.settle()
@@ -724,12 +723,12 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
         elif kind == _RESET:
             for camera in cameras:
                 camera.reset()
-            _answer_with(shared, seen, ("ok", None))
+            _answer_with(shared, seq, ("ok", None))
             wake.send_bytes(b"")
         elif kind == _BACKGROUNDS:
             for camera in cameras:
                 camera.settle()
-            _answer_with(shared, seen, ("ok", tuple(c.background.image for c in cameras)))
+            _answer_with(shared, seq, ("ok", tuple(c.background.image for c in cameras)))
             wake.send_bytes(b"")
         elif kind == _HAND_OVER:
             for camera in cameras:
@@ -743,13 +742,26 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
             cameras[:] = pickle.loads(payload.pop(0))
             for camera in cameras:
                 camera.segmenter = segmenter
-            _answer_with(shared, seen, ("ok", None))
+            _answer_with(shared, seq, ("ok", None))
             wake.send_bytes(b"")
         elif kind == _STOP:
             return
 
 
 _yield = getattr(os, "sched_yield", lambda: None)
+
+
+def request_word(seq: int, kind: int, slot: int) -> int:
+    """A request as one control word (sequence number, kind, image slot), posted in one
+    store after its points and read in one load. In three words the worker could read a
+    rehearsal's number with the next frame's kind and slot, and segment that frame twice,
+    its background model updated twice with it."""
+    return (seq << 8) | (kind << 4) | slot
+
+
+def request_of(word: int) -> tuple[int, int, int]:
+    """The sequence number, kind and image slot of a request word (:func:`request_word`)."""
+    return word >> 8, (word >> 4) & 0xF, word & 0xF
 
 
 def _answer_with(shared: _Shared, seq: int, answer: tuple) -> None:
