@@ -16,7 +16,7 @@ from replay.simulation.sources import session_joints, simulated_session
 from tracker.estimators import make_estimator
 from tracker.io.datagrams import encode_joints
 from tracker.io.udp import JointReceiver
-from tracker.live.loop import PRIME_LEAD_S, ROI_POINTS, LiveTracker
+from tracker.live.loop import PRIME_LEAD_S, PRIME_WAIT_S, ROI_POINTS, LiveTracker
 from tracker.live.pacing import PRIME_FIRST_S, PRIME_SPREADS, FramePace
 from tracker.live.sinks import MemorySink
 from tracker.live.sources import ImageSet
@@ -180,10 +180,12 @@ def test_priming_drains_the_joints_predicts_the_region_and_pauses_the_sinks(sess
     primed = region_at(session, q, last.estimate.delta_L_rad)
     assert not tracker.prime(due_s)  # once per frame
     assert not tracker.idle.is_set()
-    assert not tracker.prime(due_s + 2 * PRIME_LEAD_S)  # the frame is late...
+    assert not tracker.prime(due_s + 0.5 * PRIME_WAIT_S)  # a little late: still waited for
+    assert not tracker.idle.is_set()
+    assert not tracker.prime(due_s + 2 * PRIME_WAIT_S)  # the frame is late...
     assert tracker.idle.is_set()  # ...the sinks work meanwhile
 
-    tracker.step(images_of(session, 3), due_s + 2 * PRIME_LEAD_S)
+    tracker.step(images_of(session, 3), due_s + 2 * PRIME_WAIT_S)
     for got, want in zip(segmenter.regions[3], primed, strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     assert tracker.idle.is_set()
@@ -245,12 +247,12 @@ def test_the_loop_and_its_capture_thread_wait_for_a_primed_frame_at_its_priority
         step(tracker, session, joints, 3, received_s=due_s)
         assert memory.policies[-1] == (fifo, ordinary)  # the step's own priority
         assert policy_of(0) == policy_of(capture.native_id) == ordinary
-        # A frame that does not come: put back one lead past its due time.
+        # A frame that does not come: put back PRIME_WAIT_S past its due time.
         due_s = 10.20
         joints.send_until(session.frames[4].time_s - 0.001)
         assert tracker.prime(due_s - 0.5 * PRIME_LEAD_S)
         assert policy_of(capture.native_id) == fifo
-        assert not tracker.prime(due_s + 2 * PRIME_LEAD_S)
+        assert not tracker.prime(due_s + 2 * PRIME_WAIT_S)
         assert policy_of(0) == policy_of(capture.native_id) == ordinary
     finally:
         tracker._priority.release()
@@ -624,6 +626,54 @@ def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
     tracker.close()
 
 
+class StoppableSegmenter(RehearsingSegmenter):
+    """A rehearsing stand-in that asks whether the frame has come half way through."""
+
+    def rehearse(self, images, predicted_px=None, abandon=None):
+        self.clock.now += 0.5 * self.took_s
+        if abandon is not None and abandon():
+            self.rehearsed.append((int(images[0][0, 0]), "stopped"))
+            return False
+        super().rehearse(images, predicted_px)
+        self.clock.now -= 0.5 * self.took_s
+        return True
+
+
+class Capture:
+    """What the loop asks of its capture thread: whether a frame waits in its slot."""
+
+    waiting = False
+    thread_id = None
+    dropped = 0
+
+
+def test_a_frame_that_comes_during_the_rehearsal_stops_it_and_goes_first(session, joints):
+    """With a capture thread, the rehearsal is asked between its stages whether the frame
+    has come, and stops when it has; a stopped priming's time is not taken as a priming's
+    (it would start the next one later and later)."""
+    clock = Clock()
+    segmenter = StoppableSegmenter(session.frames, clock, took_s=0.004)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    tracker._capture = capture = Capture()
+    for k in range(3):
+        step_at(tracker, session, joints, clock, k)
+    joints.send_until(session.frames[3].time_s - 0.001)
+    capture.waiting = True  # the frame came while the loop primed itself
+    clock.now = 10.15 - 0.5 * PRIME_LEAD_S
+    assert tracker.prime(clock.now)
+    assert segmenter.rehearsed == [(2, "stopped")]
+    assert tracker.priming.mean_s == 0.0 and tracker._rehearsal_s == 0.0  # not timed
+    clock.now = 10.15
+    assert step(tracker, session, joints, 3, received_s=clock.now).estimate.valid
+    capture.waiting = False  # the next one comes after its priming
+    joints.send_until(session.frames[4].time_s - 0.001)
+    clock.now = 10.20 - PRIME_LEAD_S - PRIME_FIRST_S + 1e-9  # (rounding)
+    assert tracker.prime(clock.now)
+    assert segmenter.rehearsed[-1][0] == 3
+    assert tracker.priming.mean_s > 0.0 and tracker._rehearsal_s == pytest.approx(0.004)
+    tracker.close()
+
+
 def test_a_rehearsal_longer_than_a_fifth_of_the_period_is_skipped(session, joints):
     """On a machine too busy to spare it: tried again later, at most now and then."""
     clock = Clock()
@@ -655,12 +705,23 @@ def test_a_rehearsal_or_a_deferred_background_update_changes_nothing_in_the_segm
     qs = np.column_stack([np.linspace(0, 1, 12), np.linspace(0.8, -0.6, 12), np.full(12, 0.7)])
     pairs = [renderer.render(q, 0.4, rng).images for q in qs]
     results, backgrounds = [], []
-    for mode in ("plain", "rehearsed", "settled after", "settled by the next frame"):
+    stopped = []
+
+    def stop_after(n):
+        """Says the frame has come from its (n + 1)-th question on."""
+        asked = iter(range(1000))
+        return lambda: next(asked) >= n
+
+    modes = ("plain", "rehearsed", "stopped part way", "settled after", "settled by the next frame")
+    for mode in modes:
         segmenter = PairSegmenter(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm,
                                   renderer.backgrounds)
         out = []
         for k, images in enumerate(pairs):
-            if mode != "plain" and k:
+            if mode == "stopped part way" and k:
+                # Stopped at each of its stages in turn, then not at all.
+                stopped.append(not segmenter.rehearse(pairs[k - 1], None, stop_after(k - 1)))
+            elif mode != "plain" and k:
                 segmenter.rehearse(pairs[k - 1])
                 segmenter.rehearse(pairs[k - 1], (None, np.zeros((2, 2))))
             seg = segmenter.segment(images, settle=mode in ("plain", "rehearsed"))
@@ -671,6 +732,7 @@ def test_a_rehearsal_or_a_deferred_background_update_changes_nothing_in_the_segm
         backgrounds.append(np.stack(segmenter.backgrounds))
     assert np.isfinite(results[0]).mean() > 0.9
     assert not np.array_equal(backgrounds[0], np.stack(renderer.backgrounds))  # updated
+    assert any(stopped) and not all(stopped)
     for other, background in zip(results[1:], backgrounds[1:], strict=True):
         np.testing.assert_array_equal(results[0], other)
         np.testing.assert_array_equal(backgrounds[0], background)

@@ -431,8 +431,11 @@ class _RecordingCamera:
         self.calls.append(("segment", int(image[0, 0])))
         return int(image[0, 0])
 
-    def rehearse(self, image, points):
+    def rehearse(self, image, points, abandon=None):
+        # Whether the frame has come, asked twice (as the stages of a view would).
         self.calls.append(("rehearse", int(image[0, 0])))
+        self.asked = [abandon(), abandon()]
+        return not self.asked[-1]
 
     def in_camera_frame(self, seg):
         return seg
@@ -447,7 +450,7 @@ def test_a_frame_posted_while_the_worker_takes_up_a_rehearsal_is_segmented_once(
     request lands while the worker reads the rehearsal's, the worker segments the frame
     once, the frame's image, and answers with the frame's number (the request was three
     words once: read between them, a frame was segmented twice and its background model
-    updated twice)."""
+    updated twice); a rehearsal under way is told the frame has come."""
     import threading
 
     from tracker.live.priority import FramePriority
@@ -482,6 +485,11 @@ def test_a_frame_posted_while_the_worker_takes_up_a_rehearsal_is_segmented_once(
         segments = [c for c in camera.calls if c[0] == "segment"]
         assert segments == [("segment", 20)]
         assert all(image == 10 for kind, image in camera.calls if kind == "rehearse")
+        # A rehearsal taken up is told to stop as soon as the frame's request is there.
+        rehearsed = any(kind == "rehearse" for kind, _ in camera.calls)
+        assert rehearsed == (after > 1)
+        if rehearsed:
+            assert camera.asked == ([True, True] if after == 2 else [False, True])
         stop = parallel.request_word(3, parallel._STOP, 0)
         shared.control[parallel._REQUEST] = stop
         caller.send_bytes(b"")

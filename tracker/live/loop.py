@@ -73,8 +73,10 @@ ROI_POINTS = 12
 ROI_TIME_TOLERANCE = 0.5
 """A region predicted for the next frame serves a frame this far from the predicted time, in
 frame periods (further: the segmenter searches around the last frame's catheter)."""
-PRIME_LEAD_S = 0.003
-"""How long before a frame is due the loop primes itself for it (:meth:`LiveTracker.prime`), s."""
+PRIME_LEAD_S = 0.001
+"""How long before a frame is due its priming ends, s (:meth:`LiveTracker.prime`; docs/live.md)."""
+PRIME_WAIT_S = 0.003
+"""How long past its due time a primed loop waits for its frame with the sinks paused, s."""
 
 
 def _report_stderr(message: str) -> None:
@@ -385,13 +387,14 @@ class LiveTracker:
         the loop's code and data back in the caches (docs/live.md). With ``rehearse``, the
         last frame is run again, its result dropped and nothing changed: its reconstruction
         and estimator step at the frame's time, and its images' segmentation, earlier by the
-        time that takes. From then until the frame comes (at most one lead past its due time),
-        the queued sinks pause (they neither take those caches again nor hold the
-        interpreter) and the loop's and capture threads wait at the frame's priority."""
+        time that takes; a frame that comes meanwhile stops it (a live source's). From then
+        until the frame comes (at most :data:`PRIME_WAIT_S` past its due time), the queued
+        sinks pause (they neither take those caches again nor hold the interpreter) and the
+        loop's and capture threads wait at the frame's priority."""
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
         if self._primed:
-            if now > due_s + self.prime_lead_s:
+            if now > due_s + PRIME_WAIT_S:
                 self.idle.set()  # the frame is late: let the sinks work meanwhile
                 self._priority.release()
             return False
@@ -412,8 +415,8 @@ class LiveTracker:
             if self._images:
                 self._predict_region(time_s, q)
         self._rehearse_steps(time_s)
-        self._rehearse(time_s)
-        self.priming.add(self.monotonic() - now)
+        if self._rehearse(time_s):  # not stopped by the frame: its time is the priming's
+            self.priming.add(self.monotonic() - now)
         return True
 
     def wait_s(self, now: float, poll_s: float) -> float:
@@ -424,27 +427,30 @@ class LiveTracker:
         start_s = self.priming.start_s(self.pace.due_s(self._speed), self.prime_lead_s)
         return min(poll_s, max(start_s - now, 0.0))
 
-    def _rehearse(self, time_s: float) -> None:
+    def _rehearse(self, time_s: float) -> bool:
         """Segment the last frame's images again, where the next frame's region is (see
         :meth:`prime`); skipped when it would take more than a fifth of the frame period
-        (a machine too busy to spare it)."""
+        (a machine too busy to spare it). False if a live source's frame stopped it."""
         period_s = self.pace.period_s
         if not (self.rehearse and self._images and self._last_images is not None):
-            return
+            return True
         if period_s is not None and self._rehearsal_s > 0.2 * period_s:
             self._rehearsal_s *= 0.9  # try again later, when the machine may be quieter
-            return
-        started = self.monotonic()
+            return True
+        started, region, capture = self.monotonic(), self._region_for(time_s), self._capture
+        stop = () if capture is None else (lambda: capture.waiting,)
         try:
-            self.segmenter.rehearse(self._last_images, self._region_for(time_s))
+            if self.segmenter.rehearse(self._last_images, region, *stop) is False:
+                return False  # the frame came: it goes first
         except Exception as exc:  # a rehearsal must never stop the loop
             self.rehearse = False
             self.report(f"the segmentation's rehearsal failed and is off ({exc})")
-            return
+            return True
         took = self.monotonic() - started
         self._rehearsal_s = took if self._rehearsal_s == 0.0 else (
             0.8 * self._rehearsal_s + 0.2 * took
         )
+        return True
 
     def _rehearse_steps(self, time_s: float) -> None:
         """The last frame's reconstruction and estimator step again at ``time_s`` (after the

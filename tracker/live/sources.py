@@ -117,6 +117,11 @@ class NewestOnly:
         return getattr(self.source, "counts", None)
 
     @property
+    def waiting(self) -> bool:
+        """Whether an item is in the slot, not taken yet."""
+        return self._slot is not None
+
+    @property
     def thread_id(self) -> int | None:
         """The capture thread's native id (None before it starts)."""
         return self._thread.native_id

@@ -362,20 +362,27 @@ class CameraSegmenter:
         if pending is not None:
             self.background.update(*pending)
 
-    def rehearse(self, image: Array, predicted_px: Array | None = None) -> None:
+    def rehearse(
+        self, image: Array, predicted_px: Array | None = None, abandon=None
+    ) -> bool:
         """Segment ``image`` as :meth:`segment` would, and change nothing: no background
         update, no shift, no region kept (``LiveTracker.prime`` runs it on the last frame
         just before the next one is due, so that the segmentation's code and data are back
-        in the processor's caches when it comes)."""
+        in the processor's caches when it comes). ``abandon``: asked between the stages,
+        True stops the rehearsal (the frame has come). False if it was stopped."""
         self.settle()
         model = self.background
         photometry = self.segmenter.photometry(image, model.image, model.samples)
         if self.segmenter.photometry_flags(photometry) & NOT_SEGMENTED:
-            return
-        self.segmenter.segment(
+            return True
+        if abandon is not None and abandon():
+            return False
+        seg = self.segmenter.segment(
             image, model.image, self.base_px, photometry=photometry,
             search_px=self._search_points(predicted_px), prepared=model.prepared,
+            abandon=abandon,
         )  # fmt: skip
+        return seg is not None  # None only when abandoned
 
     def in_camera_frame(self, seg: ViewSegmentation) -> ViewSegmentation:
         """A segmentation of this camera moved from the frame's pixels into those of the

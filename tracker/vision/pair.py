@@ -383,15 +383,21 @@ class PairSegmenter:
         self.close()
 
     def rehearse(
-        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
-    ) -> None:
+        self,
+        images: Sequence[Array],
+        predicted_px: Sequence[Array | None] | None = None,
+        abandon: Callable[[], bool] | None = None,
+    ) -> bool:
         """:meth:`segment` without its result and without changing anything
         (:meth:`CameraSegmenter.rehearse`): the live loop warms the processor's caches with
-        it just before a frame is due."""
+        it just before a frame is due. ``abandon``: asked between the stages, True stops
+        the rehearsal (the frame has come); False if it was stopped."""
         if predicted_px is None:
             predicted_px = (None,) * len(self.cameras)
         for camera, image, predicted in zip(self.cameras, images, predicted_px, strict=True):
-            camera.rehearse(image, predicted)
+            if not camera.rehearse(image, predicted, abandon):
+                return False
+        return True
 
     def frame(
         self,

@@ -493,18 +493,16 @@ class ParallelPairSegmenter:
             if data:
                 return data
 
-    def rehearse(
-        self, images: Sequence[Array], predicted_px: Sequence[Array | None] | None = None
-    ) -> None:
-        """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time."""
+    def rehearse(self, images: Sequence[Array], predicted_px=None, abandon=None) -> bool:
+        """:meth:`PairSegmenter.rehearse`; the worker rehearses its views at the same time
+        (and stops when the next request comes)."""
         if not self.parallel or self.here:
-            self.local.rehearse(images, predicted_px)
-            return
+            return self.local.rehearse(images, predicted_px, abandon)
         images, predicted_px = self._checked(images, predicted_px)
         self.local.settle()
         self._between_frames(move=False)  # a move waits for settle: this is the priming
         self._request(_REHEARSE, self._write(images, True), predicted_px)
-        self.local.cameras[0].rehearse(images[0], predicted_px[0])
+        return self.local.cameras[0].rehearse(images[0], predicted_px[0], abandon)
 
     def reset(self) -> None:
         """Search the next frame's images whole (the backgrounds are kept)."""
@@ -718,7 +716,8 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
             # segmentation reports.
             with contextlib.suppress(Exception):
                 for k, camera in enumerate(cameras):
-                    camera.rehearse(shared.slots[k][slot], _taken_points(shared, k))
+                    camera.rehearse(shared.slots[k][slot], _taken_points(shared, k),
+                                    lambda seen=seen: control[_REQUEST] != seen)  # frame came
             spin_until = time.monotonic() + poll_s
         elif kind == _RESET:
             for camera in cameras:

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -302,7 +303,8 @@ class Segmenter:
         photometry: Photometry | None = None,
         search_px: Array | None = None,
         prepared: tuple[Array, Array] | None = None,
-    ) -> ViewSegmentation:
+        abandon: Callable[[], bool] | None = None,
+    ) -> ViewSegmentation | None:
         """Segment one image against the prior image of the empty scene.
 
         Parameters
@@ -323,6 +325,9 @@ class Segmenter:
             the catheter is not found there or runs out of it.
         prepared : pair of uint8 arrays, optional
             ``detection_backgrounds(background)``, if kept from frame to frame.
+        abandon : callable, optional
+            Asked between the stages; once it says True the segmentation stops and returns
+            None (a rehearsal that a frame has come to replace).
 
         Notes
         -----
@@ -356,8 +361,11 @@ class Segmenter:
         roi, mask, base_ok = found
         if not base_ok:
             flags |= SegmentationFlag.BASE_NOT_FOUND
+        if abandon is not None and abandon():
+            return None
         return self._segment_roi(
-            image, background, photometry, mask, roi, base_px if base_ok else None, flags
+            image, background, photometry, mask, roi, base_px if base_ok else None, flags,
+            abandon,
         )
 
     def photometry(
@@ -434,7 +442,7 @@ class Segmenter:
         xs, ys = np.array(points.T, np.intp, order="C")
         return ys, xs, mask
 
-    def _segment_roi(self, image, background, photometry, m, roi, base_px, flags):
+    def _segment_roi(self, image, background, photometry, m, roi, base_px, flags, abandon=None):
         s = self.settings
         sigma = photometry.sigma_gray
         x0, y0 = roi[0], roi[1]
@@ -497,6 +505,9 @@ class Segmenter:
             radius = cv2.distanceTransform(keep, cv2.DIST_L2, cv2.DIST_MASK_5)
             return radius[ys, xs]
 
+        if abandon is not None and abandon():
+            return None
+
         # ---- centreline samples: x, y and distance from the base
         bins, line = kernels.centreline(dist, xy, w, float(s.bin_px))
         centreline = line[:2].T.copy()
@@ -553,6 +564,8 @@ class Segmenter:
             flags |= SegmentationFlag.TIP_NOT_FOUND
             tip = tip_direction = nan2
             bands = []
+        if abandon is not None and abandon():
+            return None
         fit = None
         if s.band_fit_steps:
             fit = (np.ascontiguousarray(image), np.ascontiguousarray(background), photometry,
