@@ -649,8 +649,10 @@ class Capture:
 
 def test_a_frame_that_comes_during_the_rehearsal_stops_it_and_goes_first(session, joints):
     """With a capture thread, the rehearsal is asked between its stages whether the frame
-    has come, and stops when it has; a stopped priming's time is not taken as a priming's
-    (it would start the next one later and later)."""
+    has come, and stops when it has; a stopped priming is taken to have needed a lead more
+    than it had (its own time cut short would start the next one later and later, and none
+    at all would leave the timing as it was, stopped again and again), so that the next
+    starts earlier."""
     clock = Clock()
     segmenter = StoppableSegmenter(session.frames, clock, took_s=0.004)
     tracker = rehearsing_loop(session, joints, segmenter, clock)
@@ -662,15 +664,25 @@ def test_a_frame_that_comes_during_the_rehearsal_stops_it_and_goes_first(session
     clock.now = 10.15 - 0.5 * PRIME_LEAD_S
     assert tracker.prime(clock.now)
     assert segmenter.rehearsed == [(2, "stopped")]
-    assert tracker.priming.mean_s == 0.0 and tracker._rehearsal_s == 0.0  # not timed
+    assert tracker.priming.mean_s == pytest.approx(0.002 + PRIME_LEAD_S)  # a lead more
+    assert tracker._rehearsal_s == 0.0  # the rehearsal's own time: not taken
     clock.now = 10.15
     assert step(tracker, session, joints, 3, received_s=clock.now).estimate.valid
-    capture.waiting = False  # the next one comes after its priming
+    # Stopped again: the priming's time goes up, and the next starts earlier.
     joints.send_until(session.frames[4].time_s - 0.001)
-    clock.now = 10.20 - PRIME_LEAD_S - PRIME_FIRST_S + 1e-9  # (rounding)
+    first_start = tracker.priming.start_s(10.20, PRIME_LEAD_S)
+    clock.now = first_start + 1e-9
     assert tracker.prime(clock.now)
-    assert segmenter.rehearsed[-1][0] == 3
-    assert tracker.priming.mean_s > 0.0 and tracker._rehearsal_s == pytest.approx(0.004)
+    assert segmenter.rehearsed[-1] == (3, "stopped")
+    clock.now = 10.20
+    assert step(tracker, session, joints, 4, received_s=clock.now).estimate.valid
+    assert tracker.priming.start_s(10.25, PRIME_LEAD_S) - 0.05 < first_start
+    capture.waiting = False  # the next one comes after its priming, which runs whole
+    joints.send_until(session.frames[5].time_s - 0.001)
+    clock.now = tracker.priming.start_s(10.25, PRIME_LEAD_S) + 1e-9
+    assert tracker.prime(clock.now)
+    assert segmenter.rehearsed[-1][0] == 4
+    assert tracker._rehearsal_s == pytest.approx(0.004)
     tracker.close()
 
 

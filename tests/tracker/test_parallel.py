@@ -444,6 +444,17 @@ class _RecordingCamera:
         self.calls.append(("settle", None))
 
 
+def test_a_request_word_holds_every_kind_and_slot_whatever_its_number():
+    kinds = (parallel._SEGMENT, parallel._REHEARSE, parallel._RESET, parallel._BACKGROUNDS,
+             parallel._STOP, parallel._HAND_OVER, parallel._TAKE_BACK)
+    for seq in (0, 1, 255, 256, 2**40 + 3):
+        for kind in kinds:
+            for slot in range(parallel._SLOTS):
+                word = parallel.request_word(seq, kind, slot)
+                assert parallel.request_of(word) == (seq, kind, slot)
+                assert word < 2**63  # an int64 control word
+
+
 @pytest.mark.parametrize("after", [1, 2, 3])
 def test_a_frame_posted_while_the_worker_takes_up_a_rehearsal_is_segmented_once(after):
     """The caller posts a rehearsal and, without waiting, the frame: whenever the frame's

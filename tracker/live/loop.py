@@ -4,8 +4,7 @@
 
 The same :class:`~tracker.reconstruction.Reconstructor` and estimators as replay; only the
 source (cameras, UDP markers, a paced simulation or recording) and the sinks (UDP estimates,
-OpenIGTLink, rerun, recordings, CSV) differ. Joint values come from a
-:class:`~tracker.io.udp.JointReceiver`, interpolated to each image time stamp.
+OpenIGTLink, rerun, recordings, CSV) differ. Joints: a :class:`~tracker.io.udp.JointReceiver`.
 
 Real time (docs/live.md, "Real time"): the loop's own thread does only what the controller
 waits for: segmentation (in a region around the catheter predicted for this frame once the
@@ -415,8 +414,9 @@ class LiveTracker:
             if self._images:
                 self._predict_region(time_s, q)
         self._rehearse_steps(time_s)
-        if self._rehearse(time_s):  # not stopped by the frame: its time is the priming's
-            self.priming.add(self.monotonic() - now)
+        stopped = not self._rehearse(time_s)  # by its frame: it needed a lead more at least
+        took_s, mean_s = self.monotonic() - now, self.priming.mean_s
+        self.priming.add(max(took_s, mean_s) + self.prime_lead_s if stopped else took_s)
         return True
 
     def wait_s(self, now: float, poll_s: float) -> float:

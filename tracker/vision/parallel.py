@@ -715,9 +715,10 @@ def _work(wake, shared, cameras, segmenter, poll_s: float, collection, priority)
             # A rehearsal changes nothing; what is wrong with its images, the frame's own
             # segmentation reports.
             with contextlib.suppress(Exception):
-                for k, camera in enumerate(cameras):
-                    camera.rehearse(shared.slots[k][slot], _taken_points(shared, k),
-                                    lambda seen=seen: control[_REQUEST] != seen)  # frame came
+                for k, camera in enumerate(cameras):  # each until the frame's request comes
+                    if not camera.rehearse(shared.slots[k][slot], _taken_points(shared, k),
+                                           lambda seen=seen: control[_REQUEST] != seen):
+                        break
             spin_until = time.monotonic() + poll_s
         elif kind == _RESET:
             for camera in cameras:
