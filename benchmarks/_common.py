@@ -77,3 +77,61 @@ def slower(factor: float, methods):
     finally:
         for owner, name, function in originals:
             setattr(owner, name, function)
+
+
+@contextmanager
+def timed_parts(parts, within):
+    """Each frame's time in ``parts`` while the block runs: yields a dict, label -> list of
+    per-frame sums, s.
+
+    ``parts``: (label, owner, name) triples, ``owner`` a class or a module whose attribute
+    ``name`` is the function to time. ``within``: the (class, name) of the method that is one
+    frame (the live loop's step): only calls made inside it, by the thread that entered the
+    block, count (a rehearsal between frames calls some of the same functions), and each
+    frame's calls to one part are added up (a loop that segments both views calls the view's
+    segmentation twice).
+    """
+    thread = threading.get_ident()
+    frame: dict[str, float] | None = None
+    sums: dict[str, list[float]] = {label: [] for label, _, _ in parts}  # labels may repeat
+
+    def part(label, function):
+        @functools.wraps(function)
+        def timed(*args, **kwargs):
+            if frame is None or threading.get_ident() != thread:
+                return function(*args, **kwargs)
+            started = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                frame[label] = frame.get(label, 0.0) + time.perf_counter() - started
+
+        return timed
+
+    def step(function):
+        @functools.wraps(function)
+        def one_frame(*args, **kwargs):
+            nonlocal frame
+            if frame is not None or threading.get_ident() != thread:
+                return function(*args, **kwargs)
+            frame = {}
+            try:
+                return function(*args, **kwargs)
+            finally:
+                if frame:  # a frame dropped before any part ran is not one
+                    for label, values in sums.items():
+                        values.append(frame.get(label, 0.0))
+                frame = None
+
+        return one_frame
+
+    owner, name = within
+    originals = [(o, n, o.__dict__[n]) for _, o, n in parts] + [(owner, name, owner.__dict__[name])]
+    try:
+        for label, o, n in parts:
+            setattr(o, n, part(label, o.__dict__[n]))
+        setattr(owner, name, step(owner.__dict__[name]))
+        yield sums
+    finally:
+        for o, n, function in reversed(originals):
+            setattr(o, n, function)

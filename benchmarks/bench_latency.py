@@ -1,6 +1,7 @@
 """Latency of the live loop, quiet and under load (prints only; no asserts).
 
-Run from the repository root: ``python benchmarks/bench_latency.py [--load N]``.
+Run from the repository root: ``python benchmarks/bench_latency.py [--load N] [--slower F]
+[--split]``.
 
 Three measurements on the default rendering rig (two 640x480 cameras), each on the quiet
 machine and, with ``--load N``, again with N busy processes (N = the number of cores puts a
@@ -26,6 +27,11 @@ CPU hog on every core):
    busy), estimates per second, the UKF's RMS error; with the views side by side (the
    demo's default with two processors) and in the loop's process alone.
 
+With ``--split``, the live session runs once more with its critical path timed part by part
+in the loop's thread (the worker's view handed over, the loop's own view, the joints read
+meanwhile, the wait for the worker's answer, the views combined, the reconstruction, the
+estimator, the estimate datagram): what a frame's latency is made of on this machine.
+
 Targets (issue 12): quiet, image -> estimate p99 <= 5 ms (``loop``, segmentation) and no pair
 rendered late; under load, ``live`` p99 <= two frame periods with the drops counted and the UKF
 RMS within 1.5x the quiet run's. Designed for margin: a machine twice as slow should hold them.
@@ -44,7 +50,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import busy_processes, slower, verdict  # noqa: E402,F401  (repo on sys.path)
+from _common import busy_processes, slower, timed_parts, verdict  # noqa: E402,F401  (repo on sys.path)
 
 from models.catheter import default_catheter  # noqa: E402
 from models.pose import Pose  # noqa: E402
@@ -62,6 +68,8 @@ from tracker.live.loop import LiveTracker  # noqa: E402
 from tracker.live.sources import ImageSet  # noqa: E402
 from tracker.reconstruction import Reconstructor  # noqa: E402
 from tracker.viewer.output import add_rerun_args  # noqa: E402
+from tracker.vision import parallel  # noqa: E402
+from tracker.vision.background import CameraSegmenter  # noqa: E402
 from tracker.vision.pair import PairSegmenter  # noqa: E402
 from tracker.vision.parallel import ParallelPairSegmenter  # noqa: E402
 
@@ -89,6 +97,19 @@ LOOP_WORK = (
 # With the views side by side, the loop's segmentation stage is its own view and its wait
 # for the worker's (polled: processor time), so stretching the stage stretches both, as a
 # machine twice as slow would.
+# The loop's critical path in the live session, part by part (``--split``), in its order:
+# the worker's view is segmented meanwhile, from the request to the answer.
+CRITICAL_PATH = (
+    ("the worker's view handed over", ParallelPairSegmenter, "_write"),
+    ("the worker's view handed over", ParallelPairSegmenter, "_request"),
+    ("views segmented in the loop", CameraSegmenter, "segment"),
+    ("joints read meanwhile", LiveTracker, "_read_joints"),
+    ("the worker's views waited for and read", ParallelPairSegmenter, "_others"),
+    ("views combined", parallel, "combine_views"),
+    ("reconstruction", Reconstructor, "observe"),
+    ("estimator", CheckedEstimator, "step"),
+    ("estimate datagram", EstimateSender, "handle"),
+)
 TARGET_P99_MS = 5.0
 FRAME_RATE_HZ = 20.0
 JOINT_RATE_HZ = 1000
@@ -327,6 +348,30 @@ def report_live(label: str, r: dict, quiet: dict | None, loaded: bool, factor: f
         )
 
 
+def report_split(args, folder: Path) -> None:
+    """The live session (views side by side) once more, its critical path timed part by part
+    in the loop's thread (each part's time a frame, p50 / p99; the parts after the first
+    are serial with it, the worker segmenting its view meanwhile)."""
+    with timed_parts(CRITICAL_PATH, (LiveTracker, "_step")) as sums:
+        r = live_row(bench_live(args.seconds, folder))
+    print(
+        f"    {'critical path':>18}: a live session again, timed part by part in the loop's"
+        f" thread (p50 / p99 a frame, ms; latency p50 {r['p50']:.2f}, p99 {r['p99']:.2f}):"
+    )
+    medians = 0.0
+    for label, values in sums.items():
+        if not values:
+            continue
+        p50, p99 = percentiles_ms(values[WARM_UP:])
+        medians += p50
+        print(f"    {'':>18}  {label:<40} {p50:6.2f} / {p99:6.2f}")
+    print(
+        f"    {'':>18}  {'sum of the medians':<40} {medians:6.2f}"
+        f" ({r['p50'] - medians:.2f} ms of the latency's median is elsewhere: the wait for"
+        " the frame, the loop's own steps between these)"
+    )
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300, help="pairs segmented and fed (300)")
@@ -347,6 +392,11 @@ def main(argv=None) -> int:
         metavar="F",
         help="run the live session again with the loop's work F times slower (2: a machine"
         " twice as slow; 0: not)",
+    )
+    parser.add_argument(
+        "--split",
+        action="store_true",
+        help="run the live session once more, its critical path timed part by part",
     )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -377,6 +427,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         quiet = measure(args, session, renderer, pairs, markers, Path(folder))
         report("quiet", quiet, None)
+        if args.split:
+            report_split(args, Path(folder))
         if args.load:
             with busy_processes(args.load):
                 loaded = measure(args, session, renderer, pairs, markers, Path(folder))
