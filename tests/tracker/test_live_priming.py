@@ -433,6 +433,37 @@ def test_priming_rehearses_the_last_frame_earlier_by_what_it_takes(session, join
     tracker.close()
 
 
+class StreamingSegmenter(RehearsingSegmenter):
+    """A rehearsal during which the controller streams on (``joints`` sent up to ``until_s``)."""
+
+    def __init__(self, frames, clock, joints, until_s):
+        super().__init__(frames, clock)
+        self.joints, self.until_s = joints, until_s
+
+    def rehearse(self, images, predicted_px=None):
+        super().rehearse(images, predicted_px)
+        self.joints.send_until(self.until_s)
+
+
+def test_the_joints_that_come_while_priming_are_drained_before_the_frame(session, joints):
+    """Priming drains the joints at its start and again at its end: the datagrams that came
+    during the rehearsal (four or five of them live) are not left for the frame to decode."""
+    clock = Clock()
+    frame_s = session.frames[3].time_s
+    segmenter = StreamingSegmenter(session.frames, clock, joints, frame_s - 0.001)
+    tracker = rehearsing_loop(session, joints, segmenter, clock)
+    for k in range(3):
+        step_at(tracker, session, joints, clock, k)
+    joints.send_until(frame_s - 0.004)
+    clock.now = 10.15 - 0.5 * PRIME_LEAD_S
+    assert tracker.prime(clock.now)
+    assert len(segmenter.rehearsed) == 1  # the rehearsal ran, the controller streaming on
+    newest = tracker.joints.sample(frame_s)
+    assert newest.age_s == pytest.approx(0.001, abs=1e-9)  # its datagrams taken in
+    assert tracker.joints.poll() == 0  # none left for the frame
+    tracker.close()
+
+
 class SettlingSegmenter(StandInSegmenter):
     """Keeps what the loop asks of it, in order, in ``calls`` (shared with the sink)."""
 

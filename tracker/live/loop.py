@@ -386,10 +386,11 @@ class LiveTracker:
         the loop's code and data back in the caches (docs/live.md). With ``rehearse``, the
         last frame is run again, its result dropped and nothing changed: its reconstruction
         and estimator step at the frame's time, and its images' segmentation, earlier by the
-        time that takes; a frame that comes meanwhile stops it (a live source's). From then
-        until the frame comes (at most :data:`PRIME_WAIT_S` past its due time), the queued
-        sinks pause (they neither take those caches again nor hold the interpreter) and the
-        loop's and capture threads wait at the frame's priority."""
+        time that takes; a frame that comes meanwhile stops it (a live source's). The joints
+        are drained again at the end. From then until the frame comes (at most
+        :data:`PRIME_WAIT_S` past its due time), the queued sinks pause (they neither take
+        those caches again nor hold the interpreter) and the loop's and capture threads wait
+        at the frame's priority."""
         now = self.monotonic() if now is None else now
         due_s = self.pace.due_s(self._speed)
         if self._primed:
@@ -415,6 +416,7 @@ class LiveTracker:
                 self._predict_region(time_s, q)
         self._rehearse_steps(time_s)
         stopped = not self._rehearse(time_s)  # by its frame: it needed a lead more at least
+        self.joints.poll()  # what came meanwhile: not left to the frame's critical path
         took_s, mean_s = self.monotonic() - now, self.priming.mean_s
         self.priming.add(max(took_s, mean_s) + self.prime_lead_s if stopped else took_s)
         return True
@@ -551,8 +553,7 @@ class LiveTracker:
             estimate = Estimate(time_s=time_s, delta_L_rad=math.nan, std_rad=math.nan,
                                 q_r_rad=float(q[0]), flags=Flag.NO_MEASUREMENT)  # fmt: skip
         if status & INVALID and estimate.valid:
-            # Held by the estimator, but not of this frame's joints: the controller must not
-            # use it (valid bit clear); the flags say why.
+            # Held, but not of this frame's joints: not for the controller (valid bit clear).
             estimate = dataclasses.replace(estimate, delta_L_rad=math.nan, std_rad=math.nan,
                                            flags=estimate.flags | Flag.NO_MEASUREMENT)  # fmt: skip
         elif estimate.valid and not status:
@@ -574,8 +575,7 @@ class LiveTracker:
         self._dispatch(sinks[1:], *result, latency_s, status)
         self._images = is_images
         if is_images:
-            # For the next frame, now that the controller has its estimate (again with newer
-            # joints when the loop primes itself for that frame).
+            # For the next frame, now that the controller has its estimate (again, primed).
             self._roi = None
             next_time_s = self.pace.next_time_s
             if next_time_s is not None and not status & PREDICT_ONLY:
