@@ -660,8 +660,12 @@ def test_a_rehearsal_that_fails_or_takes_too_long_is_left_out(session, joints):
 class StoppableSegmenter(RehearsingSegmenter):
     """A rehearsing stand-in that asks whether the frame has come half way through."""
 
+    during = None  # called as the rehearsal starts (the controller streaming on)
+
     def rehearse(self, images, predicted_px=None, abandon=None):
         self.clock.now += 0.5 * self.took_s
+        if self.during is not None:
+            self.during()
         if abandon is not None and abandon():
             self.rehearsed.append((int(images[0][0, 0]), "stopped"))
             return False
@@ -692,9 +696,12 @@ def test_a_frame_that_comes_during_the_rehearsal_stops_it_and_goes_first(session
         step_at(tracker, session, joints, clock, k)
     joints.send_until(session.frames[3].time_s - 0.001)
     capture.waiting = True  # the frame came while the loop primed itself
+    segmenter.during = lambda: joints.send_until(session.frames[3].time_s)
     clock.now = 10.15 - 0.5 * PRIME_LEAD_S
     assert tracker.prime(clock.now)
     assert segmenter.rehearsed == [(2, "stopped")]
+    assert tracker.joints.poll() == 1  # not drained once the frame waits: it goes first
+    segmenter.during = None
     assert tracker.priming.mean_s == pytest.approx(0.002 + PRIME_LEAD_S)  # a lead more
     assert tracker._rehearsal_s == 0.0  # the rehearsal's own time: not taken
     clock.now = 10.15

@@ -387,7 +387,7 @@ class LiveTracker:
         last frame is run again, its result dropped and nothing changed: its reconstruction
         and estimator step at the frame's time, and its images' segmentation, earlier by the
         time that takes; a frame that comes meanwhile stops it (a live source's). The joints
-        are drained again at the end. From then until the frame comes (at most
+        are drained again at the end unless the frame has come. Until it comes (at most
         :data:`PRIME_WAIT_S` past its due time), the queued sinks pause (they neither take
         those caches again nor hold the interpreter) and the loop's and capture threads wait
         at the frame's priority."""
@@ -415,10 +415,10 @@ class LiveTracker:
             if self._images:
                 self._predict_region(time_s, q)
         self._rehearse_steps(time_s)
-        stopped = not self._rehearse(time_s)  # by its frame: it needed a lead more at least
-        self.joints.poll()  # what came meanwhile: not left to the frame's critical path
-        took_s, mean_s = self.monotonic() - now, self.priming.mean_s
-        self.priming.add(max(took_s, mean_s) + self.prime_lead_s if stopped else took_s)
+        if finished := self._rehearse(time_s):  # else stopped by its frame, which goes first
+            self.joints.poll()  # what came meanwhile: not left to the frame's critical path
+        took_s, mean_s = self.monotonic() - now, self.priming.mean_s  # stopped: a lead short
+        self.priming.add(took_s if finished else max(took_s, mean_s) + self.prime_lead_s)
         return True
 
     def wait_s(self, now: float, poll_s: float) -> float:
