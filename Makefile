@@ -9,9 +9,12 @@ STAMP := $(VENV)/.installed
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
+# Installs the project, then compiles its numba kernels (one process per core, cached on
+# disk) so that the first demo, replay or test does not.
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/cathtrack compile
 	touch $(STAMP)
 
 lint: $(STAMP)

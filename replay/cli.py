@@ -479,6 +479,25 @@ def _add_view(sub) -> None:
     add_rerun_args(p, bind_option=True)
     p.set_defaults(run=_command("view"))
 
+    p = sub.add_parser(
+        "compile",
+        help="compile the numba kernels now (make does it after installing)",
+        description=(
+            "Compile every numba kernel (segmentation, filters, model) now, one process per"
+            " processor, and cache them on disk: otherwise the first demo, replay or track on"
+            " a machine compiles them as it goes (about a minute and a half on one core)."
+            " Kernels already cached are only loaded."
+        ),
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="processes at a time (default: one per processor)",
+    )
+    p.set_defaults(run=_command("compile"))
+
 
 # ------------------------------------------------------------------------------ track
 def _add_track(sub) -> None:

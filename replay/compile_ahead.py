@@ -1,0 +1,154 @@
+"""Compile every numba kernel now, several at a time (``cathtrack compile``; ``make`` runs it
+after installing).
+
+The kernels are compiled the first time they are used on a machine and cached on disk next
+to the code (about a minute and a half on one core of a 2-core machine, once; loaded in a
+fraction of a second after that). Compiled here, in one process per core, that time is spent
+once at install, and shorter, rather than by the first demo, replay or test that needs them.
+A kernel that is already cached is only loaded.
+
+Each job makes what a user's first run makes (a segmenter, the filters, a replay through
+every estimator), so it compiles every version of each kernel those runs use, not one
+guessed signature.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+
+def _models() -> None:
+    from models import _fit_kernels, _imaging_kernels, _shape_kernels
+    from tracker.estimators import check_kernels
+
+    for module in (_shape_kernels, _fit_kernels, _imaging_kernels, check_kernels):
+        module.warm_up()
+
+
+def _segmentation() -> None:
+    from tracker.vision import band_fit, kernels, pair_kernels
+
+    for module in (kernels, band_fit, pair_kernels):
+        module.warm_up()
+
+
+def _filter_rules() -> None:
+    from tracker.estimators import ukf_rules
+
+    ukf_rules.warm_up()
+
+
+def _grid() -> None:
+    from tracker.estimators import grid_kernels
+
+    grid_kernels.warm_up()
+
+
+def _filters() -> None:
+    """The filter's step, and a short simulated session replayed through every estimator:
+    the batch paths (the filters' compiled runs over many frames) that no ``warm_up``
+    covers."""
+    from models.catheter import default_catheter
+    from replay.simulation.sources import simulated_session
+    from tracker.estimators import (
+        estimator_names,
+        make_estimator,
+        measurement_kernels,
+        ukf_kernels,
+        ukf_step,
+    )
+    from tracker.reconstruction import Reconstructor
+
+    for module in (measurement_kernels, ukf_kernels, ukf_step):
+        module.warm_up()
+    catheter = default_catheter()
+    session = simulated_session(2.0, 20.0, noise=0.5, catheter=catheter)
+    scene = session.scene
+    reconstructor = Reconstructor(catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
+    observations = reconstructor.observe_batch(session.frames)
+    for name in estimator_names():
+        make_estimator(name, catheter).run(observations)
+
+
+def _study() -> None:
+    """A few trials of each sensitivity study: the filters stepped as a bank of trials
+    (``cathtrack sensitivity``), arrays of other shapes than one filter's."""
+    from replay.studies.settings import SensitivitySettings, Task, study_points
+    from replay.studies.trials import run_task
+
+    settings = SensitivitySettings(
+        trials=4, chunk_trials=4, noise_levels_mm=(1.0,), theta_L1_deg=(60.0,),
+        theta_L2_deg=(60.0,), deflection_levels_mm=(4.0,),
+    )  # fmt: skip
+    studies = set()
+    for point in study_points(settings):
+        if point.study not in studies:
+            studies.add(point.study)
+            run_task(settings, Task(point, 0, 0, settings.trials))
+
+
+# Label and job, in stages: a stage starts when the one before it has ended. The filters'
+# step and runs call the filters' rules, which would otherwise be compiled twice at once (in
+# the rules' job and in theirs). Longest first within a stage, so that it ends together.
+STAGES: tuple[tuple[tuple[str, Callable[[], None]], ...], ...] = (
+    (
+        ("the filters' rules", _filter_rules),
+        ("the segmentation", _segmentation),
+        ("the grid filter", _grid),
+        ("the model", _models),
+    ),
+    (
+        ("the filters' step and every estimator's run", _filters),
+        ("the sensitivity studies' trials", _study),
+    ),
+)
+
+
+def _timed(job: Callable[[], None]) -> float:
+    started = time.perf_counter()
+    job()
+    return time.perf_counter() - started
+
+
+def compile_all(
+    jobs: int | None = None,
+    report: Callable[[str], None] = print,
+    stages: tuple[tuple[tuple[str, Callable[[], None]], ...], ...] = STAGES,
+) -> float:
+    """Run every job of ``stages`` (default :data:`STAGES`), stage after stage, ``jobs``
+    processes at a time (default: one per processor); report each as it ends. The jobs are
+    module-level functions (each runs in a spawned process). Returns the wall time, s.
+
+    Raises
+    ------
+    RuntimeError
+        Naming the job whose kernels failed to compile, with its error (the jobs not yet
+        started are not run).
+    """
+    jobs = max(1, jobs or os.cpu_count() or 1)
+    total = sum(len(stage) for stage in stages)
+    started = time.perf_counter()
+    done = 0
+    # Spawned processes: each compiles in a fresh interpreter, as a first run would.
+    context = multiprocessing.get_context("spawn")
+    widest = max(len(stage) for stage in stages)
+    with ProcessPoolExecutor(max_workers=min(jobs, widest), mp_context=context) as pool:
+        for stage in stages:
+            pending = {pool.submit(_timed, job): label for label, job in stage}
+            while pending:
+                finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    label = pending.pop(future)
+                    try:
+                        took = future.result()
+                    except Exception as exc:
+                        for other in pending:
+                            other.cancel()
+                        raise RuntimeError(f"compiling {label} failed: {exc}") from exc
+                    done += 1
+                    report(f"  {label}: {took:.1f} s ({done} of {total})")
+    return time.perf_counter() - started

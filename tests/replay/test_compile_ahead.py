@@ -1,0 +1,122 @@
+"""``cathtrack compile``: the kernels compiled ahead, several jobs at a time, stage after stage.
+
+The jobs here stand in for the compilations: each runs in a spawned process, as the real
+ones do, and leaves a file behind. Two jobs of a stage each wait for the other to have
+started, so they pass only when they run at the same time; a job of the next stage checks
+that both have ended.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+import replay.commands.compile as compile_command
+from replay.cli import main
+from replay.compile_ahead import STAGES, compile_all
+
+_FOLDER = "CATHTRACK_TEST_COMPILE_FOLDER"
+_WAIT_S = 60.0  # only a failure waits this long
+
+
+def _mark(name: str) -> None:
+    (Path(os.environ[_FOLDER]) / name).touch()
+
+
+def _wait_for(name: str) -> None:
+    path = Path(os.environ[_FOLDER]) / name
+    deadline = time.monotonic() + _WAIT_S
+    while not path.exists():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{name} never came: the jobs did not run at the same time")
+        time.sleep(0.01)
+
+
+def _first() -> None:
+    _mark("first started")
+    _wait_for("second started")
+    _mark("first ended")
+
+
+def _second() -> None:
+    _mark("second started")
+    _wait_for("first started")
+    _mark("second ended")
+
+
+def _after() -> None:
+    folder = Path(os.environ[_FOLDER])
+    if not ((folder / "first ended").exists() and (folder / "second ended").exists()):
+        raise RuntimeError("the second stage started before the first had ended")
+    _mark("after ended")
+
+
+def _fails() -> None:
+    raise ValueError("cannot determine the numba type of <object>")
+
+
+PARALLEL = ((("first", _first), ("second", _second)), (("after", _after),))
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch) -> Path:
+    monkeypatch.setenv(_FOLDER, str(tmp_path))  # the spawned processes inherit it
+    return tmp_path
+
+
+def test_the_jobs_of_a_stage_run_at_once_and_the_next_stage_after_them(folder):
+    lines: list[str] = []
+    took = compile_all(2, report=lines.append, stages=PARALLEL)
+    assert (folder / "after ended").exists()
+    assert took > 0
+    assert len(lines) == 3
+    assert sorted(line.split(":")[0].strip() for line in lines[:2]) == ["first", "second"]
+    assert lines[2].startswith("  after: ") and lines[2].endswith("(3 of 3)")
+    assert [line[-8:] for line in lines[:2]] == ["(1 of 3)", "(2 of 3)"]
+
+
+def test_a_job_that_fails_is_named_and_the_next_stage_does_not_run(folder):
+    stages = ((("the model", _fails),), (("after", _after),))
+    with pytest.raises(RuntimeError, match="compiling the model failed: cannot determine"):
+        compile_all(2, report=lambda line: None, stages=stages)
+    assert not (folder / "after ended").exists()
+
+
+def test_the_command_reports_each_job_and_a_failure_in_one_line(folder, monkeypatch, capsys):
+    def with_stages(stages):
+        return lambda jobs, report: compile_all(jobs, report, stages)
+
+    monkeypatch.setattr(compile_command, "compile_all", with_stages(PARALLEL))
+    assert main(["compile", "--jobs", "2"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "cathtrack compile: the numba kernels, 2 at a time (cached: only loaded)"
+    assert out[-1].startswith("cathtrack compile: done in ") and out[-1].endswith(" s")
+    assert len(out) == 5
+
+    monkeypatch.setattr(compile_command, "compile_all", with_stages(((("grid", _fails),),)))
+    assert main(["compile"]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "cathtrack compile: error: compiling grid failed: cannot determine the numba type of"
+        " <object>"
+    ]
+
+
+def test_a_number_of_jobs_below_one_is_refused(capsys):
+    assert main(["compile", "--jobs", "0"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "cathtrack compile: error: --jobs must be at least 1, got 0"
+    )
+
+
+def test_every_stage_has_jobs_with_labels_and_the_rules_come_before_their_callers():
+    labels = [label for stage in STAGES for label, _ in stage]
+    assert len(labels) == len(set(labels)) and all(labels)
+    first = {label for label, _ in STAGES[0]}
+    later = {label for stage in STAGES[1:] for label, _ in stage}
+    # The filters' step and runs call the rules: compiled with them, they would be twice.
+    assert "the filters' rules" in first
+    assert any("the filters' step" in label for label in later)
