@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import time
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
 
 def _models() -> None:
@@ -114,6 +114,12 @@ def _timed(job: Callable[[], None]) -> float:
     return time.perf_counter() - started
 
 
+def _ignore_interrupts() -> None:
+    """A job process leaves Ctrl-C to the caller, which ends it (a compilation interrupted
+    inside LLVM would only print a traceback and go on)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def compile_all(
     jobs: int | None = None,
     report: Callable[[str], None] = print,
@@ -128,27 +134,36 @@ def compile_all(
     RuntimeError
         Naming the job whose kernels failed to compile, with its error (the jobs not yet
         started are not run).
+    KeyboardInterrupt
+        Ctrl-C: the job processes are ended at once.
     """
     jobs = max(1, jobs or os.cpu_count() or 1)
     total = sum(len(stage) for stage in stages)
+    widest = max(len(stage) for stage in stages)
     started = time.perf_counter()
     done = 0
     # Spawned processes: each compiles in a fresh interpreter, as a first run would.
     context = multiprocessing.get_context("spawn")
-    widest = max(len(stage) for stage in stages)
-    with ProcessPoolExecutor(max_workers=min(jobs, widest), mp_context=context) as pool:
+    pool = context.Pool(min(jobs, widest), initializer=_ignore_interrupts)
+    try:
         for stage in stages:
-            pending = {pool.submit(_timed, job): label for label, job in stage}
+            pending = [(label, pool.apply_async(_timed, (job,))) for label, job in stage]
             while pending:
-                finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    label = pending.pop(future)
+                ready = [item for item in pending if item[1].ready()]
+                if not ready:
+                    time.sleep(0.05)
+                    continue
+                for item in ready:
+                    pending.remove(item)
+                    label, result = item
                     try:
-                        took = future.result()
+                        took = result.get()
                     except Exception as exc:
-                        for other in pending:
-                            other.cancel()
                         raise RuntimeError(f"compiling {label} failed: {exc}") from exc
                     done += 1
                     report(f"  {label}: {took:.1f} s ({done} of {total})")
+        pool.close()
+    finally:
+        pool.terminate()  # after close: the processes have ended; else they are ended
+        pool.join()
     return time.perf_counter() - started

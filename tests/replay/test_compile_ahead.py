@@ -8,7 +8,9 @@ that both have ended.
 
 from __future__ import annotations
 
+import _thread
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -54,6 +56,11 @@ def _after() -> None:
     _mark("after ended")
 
 
+def _long() -> None:
+    (Path(os.environ[_FOLDER]) / "long pid").write_text(str(os.getpid()))
+    time.sleep(_WAIT_S)
+
+
 def _fails() -> None:
     raise ValueError("cannot determine the numba type of <object>")
 
@@ -83,6 +90,20 @@ def test_a_job_that_fails_is_named_and_the_next_stage_does_not_run(folder):
     with pytest.raises(RuntimeError, match="compiling the model failed: cannot determine"):
         compile_all(2, report=lambda line: None, stages=stages)
     assert not (folder / "after ended").exists()
+
+
+def test_ctrl_c_ends_the_job_processes_at_once(folder):
+    def interrupt() -> None:  # Ctrl-C once the job runs
+        _wait_for("long pid")
+        _thread.interrupt_main()
+
+    threading.Thread(target=interrupt, daemon=True).start()
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        compile_all(1, report=lambda line: None, stages=((("long", _long),),))
+    assert time.monotonic() - started < _WAIT_S  # the job was not waited for
+    with pytest.raises(ProcessLookupError):
+        os.kill(int((folder / "long pid").read_text()), 0)  # ended and reaped
 
 
 def test_the_command_reports_each_job_and_a_failure_in_one_line(folder, monkeypatch, capsys):
