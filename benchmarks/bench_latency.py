@@ -30,7 +30,8 @@ CPU hog on every core):
 With ``--split``, the live session runs once more with its critical path timed part by part
 in the loop's thread (the worker's view handed over, the loop's own view, the joints read
 meanwhile, the wait for the worker's answer, the views combined, the reconstruction, the
-estimator, the estimate datagram): what a frame's latency is made of on this machine.
+estimator, the estimate datagram): what a frame's latency is made of on this machine; with
+``--load`` too, once more with the busy processes.
 
 Targets (issue 12): quiet, image -> estimate p99 <= 5 ms (``loop``, segmentation) and no pair
 rendered late; under load, ``live`` p99 <= two frame periods with the drops counted and the UKF
@@ -348,14 +349,14 @@ def report_live(label: str, r: dict, quiet: dict | None, loaded: bool, factor: f
         )
 
 
-def report_split(args, folder: Path) -> None:
+def report_split(args, folder: Path, label: str = "critical path") -> None:
     """The live session (views side by side) once more, its critical path timed part by part
     in the loop's thread (each part's time a frame, p50 / p99; the parts after the first
     are serial with it, the worker segmenting its view meanwhile)."""
     with timed_parts(CRITICAL_PATH, (LiveTracker, "_step")) as sums:
         r = live_row(bench_live(args.seconds, folder))
     print(
-        f"    {'critical path':>18}: a live session again, timed part by part in the loop's"
+        f"    {label:>18}: a live session again, timed part by part in the loop's"
         f" thread (p50 / p99 a frame, ms; latency p50 {r['p50']:.2f}, p99 {r['p99']:.2f}):"
     )
     medians = 0.0
@@ -396,7 +397,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--split",
         action="store_true",
-        help="run the live session once more, its critical path timed part by part",
+        help="run the live session once more (and once more with --load), its critical path"
+        " timed part by part",
     )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -432,7 +434,9 @@ def main(argv=None) -> int:
         if args.load:
             with busy_processes(args.load):
                 loaded = measure(args, session, renderer, pairs, markers, Path(folder))
-            report(f"{args.load} busy processes", loaded, quiet)
+                report(f"{args.load} busy processes", loaded, quiet)
+                if args.split:
+                    report_split(args, Path(folder), f"and loaded ({args.load})")
         if args.slower > 1.0:
             print(
                 f"  the live session with the loop's work {args.slower:g} times slower (its"
