@@ -120,14 +120,24 @@ def _ignore_interrupts() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def processors() -> int:
+    """The processors this process may run on (its affinity where the system tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def compile_all(
     jobs: int | None = None,
     report: Callable[[str], None] = print,
     stages: tuple[tuple[tuple[str, Callable[[], None]], ...], ...] = STAGES,
 ) -> float:
     """Run every job of ``stages`` (default :data:`STAGES`), stage after stage, ``jobs``
-    processes at a time (default: one per processor); report each as it ends. The jobs are
-    module-level functions (each runs in a spawned process). Returns the wall time, s.
+    processes at a time (default: :func:`processors`); report each as it ends. The jobs are
+    module-level functions, each run in a spawned process; one after the other in this
+    process with ``jobs`` 1, or where no process can be started (said in a line). Returns
+    the wall time, s.
 
     Raises
     ------
@@ -137,33 +147,60 @@ def compile_all(
     KeyboardInterrupt
         Ctrl-C: the job processes are ended at once.
     """
-    jobs = max(1, jobs or os.cpu_count() or 1)
-    total = sum(len(stage) for stage in stages)
-    widest = max(len(stage) for stage in stages)
+    jobs = max(1, jobs or processors())
     started = time.perf_counter()
-    done = 0
-    # Spawned processes: each compiles in a fresh interpreter, as a first run would.
-    context = multiprocessing.get_context("spawn")
-    pool = context.Pool(min(jobs, widest), initializer=_ignore_interrupts)
+    pool = None
+    if jobs > 1:
+        # Spawned processes: each compiles in a fresh interpreter, as a first run would.
+        widest = max(len(stage) for stage in stages)
+        try:
+            pool = multiprocessing.get_context("spawn").Pool(
+                min(jobs, widest), initializer=_ignore_interrupts
+            )
+        except (OSError, ImportError) as exc:  # no semaphores, say (a locked-down container)
+            report(f"  no job processes here ({exc}): one job after the other in this one")
+    if pool is None:
+        _in_this_process(stages, report)
+        return time.perf_counter() - started
     try:
-        for stage in stages:
-            pending = [(label, pool.apply_async(_timed, (job,))) for label, job in stage]
-            while pending:
-                ready = [item for item in pending if item[1].ready()]
-                if not ready:
-                    time.sleep(0.05)
-                    continue
-                for item in ready:
-                    pending.remove(item)
-                    label, result = item
-                    try:
-                        took = result.get()
-                    except Exception as exc:
-                        raise RuntimeError(f"compiling {label} failed: {exc}") from exc
-                    done += 1
-                    report(f"  {label}: {took:.1f} s ({done} of {total})")
+        _in_pool(pool, stages, report)
         pool.close()
     finally:
         pool.terminate()  # after close: the processes have ended; else they are ended
         pool.join()
     return time.perf_counter() - started
+
+
+def _done(label: str, took: float, count: list[int], total: int, report) -> None:
+    count[0] += 1
+    report(f"  {label}: {took:.1f} s ({count[0]} of {total})")
+
+
+def _in_this_process(stages, report) -> None:
+    total, count = sum(len(stage) for stage in stages), [0]
+    for stage in stages:
+        for label, job in stage:
+            try:
+                took = _timed(job)
+            except Exception as exc:
+                raise RuntimeError(f"compiling {label} failed: {exc}") from exc
+            _done(label, took, count, total, report)
+
+
+def _in_pool(pool, stages, report) -> None:
+    total, count = sum(len(stage) for stage in stages), [0]
+    for stage in stages:
+        pending = [(label, pool.apply_async(_timed, (job,))) for label, job in stage]
+        while pending:
+            ready = [item for item in pending if item[1].ready()]
+            if not ready:
+                time.sleep(0.05)
+                continue
+            for item in ready:
+                pending.remove(item)
+                label, result = item
+                try:
+                    took = result.get()
+                except Exception as exc:
+                    raise RuntimeError(f"compiling {label} failed: {exc}") from exc
+                _done(label, took, count, total, report)

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 import replay.commands.compile as compile_command
+import replay.compile_ahead as compile_ahead
 from replay.cli import main
 from replay.compile_ahead import STAGES, compile_all
 
@@ -61,6 +62,16 @@ def _long() -> None:
     time.sleep(_WAIT_S)
 
 
+def _here() -> None:
+    (Path(os.environ[_FOLDER]) / "here pid").write_text(str(os.getpid()))
+
+
+def _after_here() -> None:
+    if not (Path(os.environ[_FOLDER]) / "here pid").exists():
+        raise RuntimeError("the second stage ran before the first")
+    _mark("after ended")
+
+
 def _fails() -> None:
     raise ValueError("cannot determine the numba type of <object>")
 
@@ -92,6 +103,38 @@ def test_a_job_that_fails_is_named_and_the_next_stage_does_not_run(folder):
     assert not (folder / "after ended").exists()
 
 
+ONE_AFTER_ANOTHER = ((("here", _here),), (("after", _after_here),))
+
+
+def test_one_job_at_a_time_runs_the_jobs_in_this_process_in_order(folder):
+    lines: list[str] = []
+    compile_all(1, report=lines.append, stages=ONE_AFTER_ANOTHER)
+    assert int((folder / "here pid").read_text()) == os.getpid()
+    assert (folder / "after ended").exists()
+    assert [line.split(":")[0].strip() for line in lines] == ["here", "after"]
+
+
+def test_without_job_processes_the_jobs_run_here_and_a_line_says_so(folder, monkeypatch):
+    class NoSemaphores:
+        def Pool(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
+            raise OSError("[Errno 38] Function not implemented")
+
+    monkeypatch.setattr(compile_ahead.multiprocessing, "get_context", lambda kind: NoSemaphores())
+    lines: list[str] = []
+    compile_all(2, report=lines.append, stages=ONE_AFTER_ANOTHER)
+    assert int((folder / "here pid").read_text()) == os.getpid()
+    assert lines[0] == (
+        "  no job processes here ([Errno 38] Function not implemented): one job after the"
+        " other in this one"
+    )
+    assert len(lines) == 3 and (folder / "after ended").exists()
+
+
+def test_a_job_that_fails_in_this_process_is_named(folder):
+    with pytest.raises(RuntimeError, match="compiling grid failed: cannot determine"):
+        compile_all(1, report=lambda line: None, stages=((("grid", _fails),),))
+
+
 def test_ctrl_c_ends_the_job_processes_at_once(folder):
     def interrupt() -> None:  # Ctrl-C once the job runs
         _wait_for("long pid")
@@ -100,7 +143,7 @@ def test_ctrl_c_ends_the_job_processes_at_once(folder):
     threading.Thread(target=interrupt, daemon=True).start()
     started = time.monotonic()
     with pytest.raises(KeyboardInterrupt):
-        compile_all(1, report=lambda line: None, stages=((("long", _long),),))
+        compile_all(2, report=lambda line: None, stages=((("long", _long),),))
     assert time.monotonic() - started < _WAIT_S  # the job was not waited for
     with pytest.raises(ProcessLookupError):
         os.kill(int((folder / "long pid").read_text()), 0)  # ended and reaped
