@@ -14,11 +14,13 @@ guessed signature.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 
 def _models() -> None:
@@ -204,3 +206,25 @@ def _in_pool(pool, stages, report) -> None:
                 except Exception as exc:
                     raise RuntimeError(f"compiling {label} failed: {exc}") from exc
                 _done(label, took, count, total, report)
+
+
+SLOW_SET_UP_S = 5.0
+SLOW_SET_UP = (
+    "still setting up: the first run on a machine compiles the numba kernels (about a minute,"
+    " once; 'cathtrack compile' does it ahead, and make runs it after installing)"
+)
+
+
+@contextlib.contextmanager
+def slow_set_up_notice(
+    report: Callable[[str], None], after_s: float = SLOW_SET_UP_S
+) -> Iterator[None]:
+    """Report :data:`SLOW_SET_UP` once if the block (a command's set-up: its segmenter and
+    filters, which load the kernels or compile them) is still running after ``after_s``."""
+    timer = threading.Timer(after_s, report, args=(SLOW_SET_UP,))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()

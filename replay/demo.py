@@ -36,6 +36,7 @@ import numpy as np
 
 from models.catheter import default_catheter
 from models.rotations import wrap_angle
+from replay.compile_ahead import slow_set_up_notice
 from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import default_scene
 from replay.simulation.sources import SimulatedCameras, session_joints, simulated_session
@@ -486,13 +487,15 @@ def run_demo(
         seed=settings.seed,
         nuisance=settings.image_nuisance,
     )
-    segmenter = pair_segmenter(
-        catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
-        parallel=None if settings.segmentation_worker else False, report=report,
-        realtime=settings.realtime,
-    )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
-    others = {name: make_estimator(name, catheter) for name in compare}
+    with slow_set_up_notice(report):  # the kernels, compiled if not cached
+        segmenter = pair_segmenter(
+            catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
+            parallel=None if settings.segmentation_worker else False, report=report,
+            realtime=settings.realtime,
+        )
+        others = {name: make_estimator(name, catheter) for name in compare}
+        make_estimator(settings.estimator, catheter)  # the session's kernels, under the notice
     # The cameras and the controller are processes of their own, started first: they come
     # up while the session is set up.
     cameras = SimulatedCameras(

@@ -17,6 +17,7 @@ from pathlib import Path
 from models.catheter import Catheter
 from models.imaging import Rig
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
+from replay.compile_ahead import slow_set_up_notice
 from replay.simulation.simulator import Scene
 from tracker.io.recording import Recording, open_recording
 from tracker.io.udp import DEFAULT_JOINT_PORT, MarkerReceiver
@@ -216,18 +217,21 @@ def _run(args: argparse.Namespace, kind: str, settings, worker: contextlib.ExitS
             for warning in recording.report.warnings:  # what was lost, as evaluate reports it
                 _track_report(f"{args.recording}: warning: {warning}")
         scene, model_toml = _scene(args, recording)
-        segmenter = _segmenter(args, scene) if kind in ("video", "camera") else None
-        if segmenter is not None:
-            worker.callback(segmenter.close)
-        session = LiveSession(
-            settings,
-            scene,
-            rerun_args=args,
-            segmenter=segmenter,
-            model_toml=model_toml,
-            record_metadata={"command": "track", "source": kind, "estimator": args.estimator},
-            report=_track_report,
-        )
+        with slow_set_up_notice(_track_report):  # the kernels, compiled if not cached
+            segmenter = _segmenter(args, scene) if kind in ("video", "camera") else None
+            if segmenter is not None:
+                worker.callback(segmenter.close)
+            session = LiveSession(
+                settings,
+                scene,
+                rerun_args=args,
+                segmenter=segmenter,
+                model_toml=model_toml,
+                record_metadata={
+                    "command": "track", "source": kind, "estimator": args.estimator,
+                },
+                report=_track_report,
+            )  # fmt: skip
         stack.callback(session.close)
         images = session.viewer is not None and not args.no_images
         source, source_text = _open_source(

@@ -184,3 +184,33 @@ def test_every_stage_has_jobs_with_labels_and_the_rules_come_before_their_caller
     # The filters' step and runs call the rules: compiled with them, they would be twice.
     assert "the filters' rules" in first
     assert any("the filters' step" in label for label in later)
+
+
+def test_a_set_up_still_running_after_its_time_says_the_kernels_may_be_compiling():
+    said = threading.Event()
+    lines: list[str] = []
+
+    def report(line: str) -> None:
+        lines.append(line)
+        said.set()
+
+    with compile_ahead.slow_set_up_notice(report, after_s=0.0):
+        assert said.wait(_WAIT_S)  # the block outlasts its time: the notice comes, once
+    assert lines == [compile_ahead.SLOW_SET_UP]
+    assert "cathtrack compile" in lines[0] and "make" in lines[0]
+
+
+def test_a_set_up_that_ends_in_time_says_nothing_and_stops_its_timer(monkeypatch):
+    timers: list[threading.Timer] = []
+
+    class Timer(threading.Timer):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            timers.append(self)
+
+    monkeypatch.setattr(compile_ahead.threading, "Timer", Timer)
+    lines: list[str] = []
+    with compile_ahead.slow_set_up_notice(lines.append, after_s=_WAIT_S):
+        pass
+    timers[0].join(_WAIT_S)  # a cancelled timer ends at once; one left running would not
+    assert not timers[0].is_alive() and lines == []
