@@ -7,9 +7,10 @@ fraction of a second after that). Compiled here, in one process per core, that t
 once at install, and shorter, rather than by the first demo, replay or test that needs them.
 A kernel that is already cached is only loaded.
 
-Each job makes what a user's first run makes (a segmenter, the filters, a replay through
-every estimator), so it compiles every version of each kernel those runs use, not one
-guessed signature.
+The jobs call the kernels' own warm-ups (the argument types the segmenter and the filters
+pass), then replay a short simulated session through every estimator and run a few trials
+of each study, so that a first replay or study finds the versions it uses cached too. The
+tests use a few versions of their own, which they still compile.
 """
 
 from __future__ import annotations
