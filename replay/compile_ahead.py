@@ -16,12 +16,11 @@ tests use a few versions of their own, which they still compile.
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
-import os
-import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+
+from replay.parallel import execute
 
 
 def _models() -> None:
@@ -111,24 +110,15 @@ STAGES: tuple[tuple[tuple[str, Callable[[], None]], ...], ...] = (
 )
 
 
-def _timed(job: Callable[[], None]) -> float:
+def _compiled(_settings: None, job: tuple[str, Callable[[], None]]) -> float:
+    """Run one job (label, function); its time, s. A failure is raised naming the job."""
+    label, function = job
     started = time.perf_counter()
-    job()
-    return time.perf_counter() - started
-
-
-def _ignore_interrupts() -> None:
-    """A job process leaves Ctrl-C to the caller, which ends it (a compilation interrupted
-    inside LLVM would only print a traceback and go on)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def processors() -> int:
-    """The processors this process may run on (its affinity where the system tells it)."""
     try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+        function()
+    except Exception as exc:
+        raise RuntimeError(f"compiling {label} failed: {exc}") from exc
+    return time.perf_counter() - started
 
 
 def compile_all(
@@ -137,76 +127,31 @@ def compile_all(
     stages: tuple[tuple[tuple[str, Callable[[], None]], ...], ...] = STAGES,
 ) -> float:
     """Run every job of ``stages`` (default :data:`STAGES`), stage after stage, ``jobs``
-    processes at a time (default: :func:`processors`); report each as it ends. The jobs are
-    module-level functions, each run in a spawned process; one after the other in this
-    process with ``jobs`` 1, or where no process can be started (said in a line). Returns
-    the wall time, s.
+    worker processes at a time (default: the processors this process may use) with
+    :func:`replay.parallel.execute` (one job after the other in this process with ``jobs``
+    1, or where no worker process can be started); report each job as it ends. The jobs
+    are module-level functions. Returns the wall time, s.
 
     Raises
     ------
     RuntimeError
-        Naming the job whose kernels failed to compile, with its error (the jobs not yet
-        started are not run).
+        Naming the job whose kernels failed to compile, with its error (the other workers
+        are ended, and the later stages not run).
     KeyboardInterrupt
-        Ctrl-C: the job processes are ended at once.
+        Ctrl-C: the workers are ended at once.
     """
-    jobs = max(1, jobs or processors())
     started = time.perf_counter()
-    pool = None
-    if jobs > 1:
-        # Spawned processes: each compiles in a fresh interpreter, as a first run would.
-        widest = max(len(stage) for stage in stages)
-        try:
-            pool = multiprocessing.get_context("spawn").Pool(
-                min(jobs, widest), initializer=_ignore_interrupts
-            )
-        except (OSError, ImportError) as exc:  # no semaphores, say (a locked-down container)
-            report(f"  no job processes here ({exc}): one job after the other in this one")
-    if pool is None:
-        _in_this_process(stages, report)
-        return time.perf_counter() - started
-    try:
-        _in_pool(pool, stages, report)
-        pool.close()
-    finally:
-        pool.terminate()  # after close: the processes have ended; else they are ended
-        pool.join()
+    total = sum(len(stage) for stage in stages)
+    done = 0
+    for stage in stages:
+
+        def finished(index: int, took: float, stage=stage) -> None:
+            nonlocal done
+            done += 1
+            report(f"  {stage[index][0]}: {took:.1f} s ({done} of {total})")
+
+        execute(_compiled, None, stage, jobs, on_result=finished, unit="job", report=report)
     return time.perf_counter() - started
-
-
-def _done(label: str, took: float, count: list[int], total: int, report) -> None:
-    count[0] += 1
-    report(f"  {label}: {took:.1f} s ({count[0]} of {total})")
-
-
-def _in_this_process(stages, report) -> None:
-    total, count = sum(len(stage) for stage in stages), [0]
-    for stage in stages:
-        for label, job in stage:
-            try:
-                took = _timed(job)
-            except Exception as exc:
-                raise RuntimeError(f"compiling {label} failed: {exc}") from exc
-            _done(label, took, count, total, report)
-
-
-def _in_pool(pool, stages, report) -> None:
-    total, count = sum(len(stage) for stage in stages), [0]
-    for stage in stages:
-        pending = [(label, pool.apply_async(_timed, (job,))) for label, job in stage]
-        while pending:
-            ready = [item for item in pending if item[1].ready()]
-            if not ready:
-                time.sleep(0.05)
-                continue
-            for item in ready:
-                pending.remove(item)
-                label, result = item
-                try:
-                    took = result.get()
-                except Exception as exc:
-                    raise RuntimeError(f"compiling {label} failed: {exc}") from exc
-                _done(label, took, count, total, report)
 
 
 SLOW_SET_UP_S = 5.0
@@ -216,16 +161,27 @@ SLOW_SET_UP = (
 )
 
 
-@contextlib.contextmanager
-def slow_set_up_notice(
-    report: Callable[[str], None], after_s: float = SLOW_SET_UP_S
-) -> Iterator[None]:
-    """Report :data:`SLOW_SET_UP` once if the block (a command's set-up: its segmenter and
-    filters, which load the kernels or compile them) is still running after ``after_s``."""
-    timer = threading.Timer(after_s, report, args=(SLOW_SET_UP,))
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
+class SlowSetUpNotice:
+    """Reports :data:`SLOW_SET_UP`, once, when a block run under :meth:`during` (a
+    command's set-up: its segmenter and filters, which load the kernels or compile them) is
+    still running after ``after_s``."""
+
+    def __init__(self, report: Callable[[str], None], after_s: float = SLOW_SET_UP_S) -> None:
+        self.report = report
+        self.after_s = after_s
+        self.said = False
+
+    @contextlib.contextmanager
+    def during(self) -> Iterator[None]:
+        timer = threading.Timer(self.after_s, self._say)
+        timer.daemon = True
+        timer.start()
+        try:
+            yield
+        finally:
+            timer.cancel()
+
+    def _say(self) -> None:
+        if not self.said:
+            self.said = True
+            self.report(SLOW_SET_UP)

@@ -36,7 +36,7 @@ import numpy as np
 
 from models.catheter import default_catheter
 from models.rotations import wrap_angle
-from replay.compile_ahead import slow_set_up_notice
+from replay.compile_ahead import SlowSetUpNotice
 from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import default_scene
 from replay.simulation.sources import SimulatedCameras, session_joints, simulated_session
@@ -488,14 +488,14 @@ def run_demo(
         nuisance=settings.image_nuisance,
     )
     compare = tuple(m for m in settings.compare if m != settings.estimator)
-    with slow_set_up_notice(report):  # the kernels, compiled if not cached
+    notice = SlowSetUpNotice(report)  # the kernels, compiled if not cached
+    with notice.during():
         segmenter = pair_segmenter(
             catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm, renderer.backgrounds,
             parallel=None if settings.segmentation_worker else False, report=report,
             realtime=settings.realtime,
         )
         others = {name: make_estimator(name, catheter) for name in compare}
-        make_estimator(settings.estimator, catheter)  # the session's kernels, under the notice
     # The cameras and the controller are processes of their own, started first: they come
     # up while the session is set up.
     cameras = SimulatedCameras(
@@ -522,15 +522,17 @@ def run_demo(
             collect_between_frames=settings.collect_between_frames,
             realtime=settings.realtime,
         )
-        with LiveSession(
-            live_settings,
-            scene,
-            rerun_args=rerun_args,
-            segmenter=segmenter,
-            viewer_methods=compare,
-            truth=cameras.truth,
-            report=report,
-        ) as live:
+        with notice.during():  # the session's estimator
+            live_session = LiveSession(
+                live_settings,
+                scene,
+                rerun_args=rerun_args,
+                segmenter=segmenter,
+                viewer_methods=compare,
+                truth=cameras.truth,
+                report=report,
+            )
+        with live_session as live:
             scorer = ScoreSink(
                 settings.estimator, others, cameras.truth, live.viewer, live.viewer_thread
             )

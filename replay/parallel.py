@@ -9,14 +9,16 @@ linear algebra of a task on one thread (threadpoolctl), which is what tiny matri
 from __future__ import annotations
 
 import contextlib
-import os
+import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
+
+from tracker.live.affinity import usable_processors
 
 __all__ = ["execute", "single_blas_thread", "worker_count"]
 
@@ -52,8 +54,25 @@ def single_blas_thread() -> Iterator[None]:
 
 
 def worker_count(workers: int | None) -> int:
-    """Local worker processes: the number of CPUs when not given."""
-    return (os.cpu_count() or 1) if workers is None else int(workers)
+    """Local worker processes: the processors this process may use when not given."""
+    return usable_processors() if workers is None else int(workers)
+
+
+def _ignore_interrupts() -> None:
+    """A worker process leaves Ctrl-C to the caller, which ends it at once (a task inside a
+    library's callback, numba's compiler say, would print a traceback and go on)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _end(pool: ProcessPoolExecutor) -> None:
+    """End the pool's worker processes now, running tasks and all (Ctrl-C, or a task that
+    raised: what the others would compute is not wanted), and wait until they have gone."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.join()
 
 
 def execute(
@@ -66,6 +85,7 @@ def execute(
     description: str = "",
     on_result: Callable[[int, object], None] | None = None,
     unit: str = "task",
+    report: Callable[[str], None] | None = None,
 ) -> list:
     """``[function(settings, task) for task in tasks]`` in task order, run in parallel.
 
@@ -74,7 +94,8 @@ def execute(
     function : callable
         ``function(settings, task)``; picklable (a module-level function) for a pool or Dask.
     workers : int, optional
-        Local worker processes (default: the number of CPUs; 1 runs in this process).
+        Local worker processes (default: the processors this process may use; 1 runs in
+        this process, as do all where no worker process can be started: ``report`` says so).
     scheduler : str, optional
         Address of a Dask scheduler (``tcp://host:8786``) to run the tasks on instead.
     progress : bool
@@ -82,6 +103,12 @@ def execute(
     on_result : callable, optional
         ``on_result(index, result)`` as each task finishes (in completion order), e.g. to keep
         what was done when a later task raises.
+    report : callable, optional
+        Takes the line that says the tasks run in this process for want of worker processes
+        (default: stderr).
+
+    A task that raises ends the local workers at once and is raised here; so does Ctrl-C
+    (the workers ignore it themselves).
     """
     workers = worker_count(workers)
     if workers < 1:
@@ -104,7 +131,18 @@ def execute(
     if scheduler:
         with progress_bar() as bar:
             return _execute_dask(function, settings, tasks, scheduler, bar, done)
-    if workers == 1 or len(tasks) <= 1:
+    pool = None
+    if workers > 1 and len(tasks) > 1:
+        try:
+            pool = ProcessPoolExecutor(
+                max_workers=min(workers, len(tasks)), initializer=_ignore_interrupts
+            )
+        except OSError as exc:  # no semaphores (a locked-down container, say)
+            (report or _report_stderr)(
+                f"no worker processes here ({exc}): the {unit}s run one after the other in"
+                " this process"
+            )
+    if pool is None:
         results = []
         with progress_bar() as bar:
             for i, task in enumerate(tasks):
@@ -112,18 +150,31 @@ def execute(
                 done(i, results[-1])
                 bar.update()
         return results
-    with ProcessPoolExecutor(max_workers=min(workers, len(tasks))) as pool:
+    try:
         # Submit before the bar exists: its monitor thread must not be alive when the pool
         # forks its workers.
         futures = {pool.submit(function, settings, task): i for i, task in enumerate(tasks)}
         results = [None] * len(tasks)
+        pending = set(futures)
         with progress_bar() as bar:
-            for future in as_completed(futures):
-                i = futures[future]
-                results[i] = future.result()
-                done(i, results[i])
-                bar.update()
-        return results
+            while pending:
+                # A timeout, so that this thread runs Python often: a Ctrl-C that the system
+                # handed to another thread is raised here within it, not after a long task.
+                finished, pending = wait(pending, timeout=0.1, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    i = futures[future]
+                    results[i] = future.result()
+                    done(i, results[i])
+                    bar.update()
+    except BaseException:
+        _end(pool)
+        raise
+    pool.shutdown()
+    return results
+
+
+def _report_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _execute_dask(

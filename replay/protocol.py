@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import sys
 import tomllib
 from collections.abc import Iterator, Sequence
@@ -54,7 +53,7 @@ from models.model_file import DEFAULT_MODEL_PATH, catheter_from_dict, load_cathe
 from models.pose import Pose
 from models.rig_file import rig_toml
 from models.rotations import wrap_angle
-from replay.parallel import single_blas_thread
+from replay.parallel import single_blas_thread, worker_count
 from replay.simulation.render import ImagingNuisance, Renderer, RenderSettings, default_render_rig
 from replay.simulation.simulator import (
     JointTrajectory,
@@ -680,7 +679,7 @@ def simulate_protocol(
     model_text = model_path.read_text(encoding="utf-8")
     scene = _scene(settings, catheter)
     protocol = build_protocol(settings, scene)
-    workers = (os.cpu_count() or 1) if workers is None else int(workers)
+    workers = worker_count(workers)
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     recorded_settings = {

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 from replay import evaluation
+from replay.parallel import worker_count
 
 
 def run(args: argparse.Namespace) -> int:
@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
             args.recordings[0],
             args.out,
             progress=not args.no_progress,
-            workers=(os.cpu_count() or 1) if args.workers is None else args.workers,
+            workers=worker_count(args.workers),
             **options,
         )
         print(Path(result.files[0]).read_text(), end="")

@@ -17,7 +17,7 @@ from pathlib import Path
 from models.catheter import Catheter
 from models.imaging import Rig
 from models.model_file import DEFAULT_MODEL_PATH, load_catheter
-from replay.compile_ahead import slow_set_up_notice
+from replay.compile_ahead import SlowSetUpNotice
 from replay.simulation.simulator import Scene
 from tracker.io.recording import Recording, open_recording
 from tracker.io.udp import DEFAULT_JOINT_PORT, MarkerReceiver
@@ -217,7 +217,7 @@ def _run(args: argparse.Namespace, kind: str, settings, worker: contextlib.ExitS
             for warning in recording.report.warnings:  # what was lost, as evaluate reports it
                 _track_report(f"{args.recording}: warning: {warning}")
         scene, model_toml = _scene(args, recording)
-        with slow_set_up_notice(_track_report):  # the kernels, compiled if not cached
+        with SlowSetUpNotice(_track_report).during():  # the kernels, compiled if not cached
             segmenter = _segmenter(args, scene) if kind in ("video", "camera") else None
             if segmenter is not None:
                 worker.callback(segmenter.close)

@@ -10,7 +10,6 @@ there too.
 from __future__ import annotations
 
 import csv
-import os
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from pathlib import Path
 from replay.evaluation.outputs import CSV_COLUMNS, evaluate_recording
 from replay.evaluation.run import progress_bar
 from replay.evaluation.tables import Check, format_cell
+from replay.parallel import worker_count
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ def evaluate_batch(
     names = _unique_names([Path(p) for p in paths])
     jobs = [(str(p), str(out / name)) for p, name in zip(paths, names, strict=True)]
     options = {**options, "progress": False, "workers": 1}
-    workers = (os.cpu_count() or 1) if workers is None else int(workers)
+    workers = worker_count(workers)
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     bar = progress_bar(len(jobs), "evaluate", progress, unit="recording")

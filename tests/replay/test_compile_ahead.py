@@ -18,6 +18,7 @@ import pytest
 
 import replay.commands.compile as compile_command
 import replay.compile_ahead as compile_ahead
+from replay import parallel
 from replay.cli import main
 from replay.compile_ahead import STAGES, compile_all
 
@@ -62,8 +63,22 @@ def _long() -> None:
     time.sleep(_WAIT_S)
 
 
+def _long_too() -> None:
+    (Path(os.environ[_FOLDER]) / "long too pid").write_text(str(os.getpid()))
+    time.sleep(_WAIT_S)
+
+
+def _fails_once_long_runs() -> None:
+    _wait_for("long pid")
+    _fails()
+
+
 def _here() -> None:
     (Path(os.environ[_FOLDER]) / "here pid").write_text(str(os.getpid()))
+
+
+def _here_too() -> None:
+    (Path(os.environ[_FOLDER]) / "here too pid").write_text(str(os.getpid()))
 
 
 def _after_here() -> None:
@@ -96,10 +111,22 @@ def test_the_jobs_of_a_stage_run_at_once_and_the_next_stage_after_them(folder):
     assert [line[-8:] for line in lines[:2]] == ["(1 of 3)", "(2 of 3)"]
 
 
-def test_a_job_that_fails_is_named_and_the_next_stage_does_not_run(folder):
-    stages = ((("the model", _fails),), (("after", _after),))
+def _gone(pid_file: Path) -> bool:
+    """Whether the process that wrote ``pid_file`` has ended and been reaped."""
+    try:
+        os.kill(int(pid_file.read_text()), 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_a_job_that_fails_is_named_its_stage_ended_and_the_next_not_run(folder):
+    stages = ((("the model", _fails_once_long_runs), ("long", _long)), (("after", _after),))
+    started = time.monotonic()
     with pytest.raises(RuntimeError, match="compiling the model failed: cannot determine"):
         compile_all(2, report=lambda line: None, stages=stages)
+    assert time.monotonic() - started < _WAIT_S  # the other job was not waited for
+    assert _gone(folder / "long pid")
     assert not (folder / "after ended").exists()
 
 
@@ -114,20 +141,22 @@ def test_one_job_at_a_time_runs_the_jobs_in_this_process_in_order(folder):
     assert [line.split(":")[0].strip() for line in lines] == ["here", "after"]
 
 
-def test_without_job_processes_the_jobs_run_here_and_a_line_says_so(folder, monkeypatch):
-    class NoSemaphores:
-        def Pool(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
-            raise OSError("[Errno 38] Function not implemented")
+def test_without_worker_processes_the_jobs_run_here_and_a_line_says_so(folder, monkeypatch):
+    def no_semaphores(*args, **kwargs):
+        raise OSError("[Errno 38] Function not implemented")
 
-    monkeypatch.setattr(compile_ahead.multiprocessing, "get_context", lambda kind: NoSemaphores())
+    monkeypatch.setattr(parallel, "ProcessPoolExecutor", no_semaphores)
     lines: list[str] = []
-    compile_all(2, report=lines.append, stages=ONE_AFTER_ANOTHER)
+    stages = ((("here", _here), ("here too", _here_too)), (("after", _after_here),))
+    compile_all(2, report=lines.append, stages=stages)
     assert int((folder / "here pid").read_text()) == os.getpid()
+    assert int((folder / "here too pid").read_text()) == os.getpid()
     assert lines[0] == (
-        "  no job processes here ([Errno 38] Function not implemented): one job after the"
-        " other in this one"
+        "no worker processes here ([Errno 38] Function not implemented): the jobs run one"
+        " after the other in this process"
     )
-    assert len(lines) == 3 and (folder / "after ended").exists()
+    assert [line.split(":")[0].strip() for line in lines[1:]] == ["here", "here too", "after"]
+    assert (folder / "after ended").exists()
 
 
 def test_a_job_that_fails_in_this_process_is_named(folder):
@@ -136,17 +165,18 @@ def test_a_job_that_fails_in_this_process_is_named(folder):
 
 
 def test_ctrl_c_ends_the_job_processes_at_once(folder):
-    def interrupt() -> None:  # Ctrl-C once the job runs
+    def interrupt() -> None:  # Ctrl-C once both jobs run
         _wait_for("long pid")
+        _wait_for("long too pid")
         _thread.interrupt_main()
 
     threading.Thread(target=interrupt, daemon=True).start()
     started = time.monotonic()
     with pytest.raises(KeyboardInterrupt):
-        compile_all(2, report=lambda line: None, stages=((("long", _long),),))
-    assert time.monotonic() - started < _WAIT_S  # the job was not waited for
-    with pytest.raises(ProcessLookupError):
-        os.kill(int((folder / "long pid").read_text()), 0)  # ended and reaped
+        compile_all(2, report=lambda line: None, stages=((("long", _long), ("too", _long_too)),))
+    assert time.monotonic() - started < _WAIT_S  # the jobs were not waited for
+    assert _gone(folder / "long pid") and _gone(folder / "long too pid")
+    assert os.getpid() != int((folder / "long pid").read_text())  # they ran in workers
 
 
 def test_the_command_reports_each_job_and_a_failure_in_one_line(folder, monkeypatch, capsys):
@@ -186,7 +216,7 @@ def test_every_stage_has_jobs_with_labels_and_the_rules_come_before_their_caller
     assert any("the filters' step" in label for label in later)
 
 
-def test_a_set_up_still_running_after_its_time_says_the_kernels_may_be_compiling():
+def test_a_set_up_still_running_after_its_time_says_the_kernels_may_be_compiling_once():
     said = threading.Event()
     lines: list[str] = []
 
@@ -194,9 +224,13 @@ def test_a_set_up_still_running_after_its_time_says_the_kernels_may_be_compiling
         lines.append(line)
         said.set()
 
-    with compile_ahead.slow_set_up_notice(report, after_s=0.0):
-        assert said.wait(_WAIT_S)  # the block outlasts its time: the notice comes, once
-    assert lines == [compile_ahead.SLOW_SET_UP]
+    notice = compile_ahead.SlowSetUpNotice(report, after_s=0.0)
+    with notice.during():
+        assert said.wait(_WAIT_S)  # the block outlasts its time: the notice comes
+    said.clear()
+    with notice.during():  # a second slow block of the same set-up (the demo has two)
+        time.sleep(0.01)
+    assert lines == [compile_ahead.SLOW_SET_UP]  # once
     assert "cathtrack compile" in lines[0] and "make" in lines[0]
 
 
@@ -210,7 +244,8 @@ def test_a_set_up_that_ends_in_time_says_nothing_and_stops_its_timer(monkeypatch
 
     monkeypatch.setattr(compile_ahead.threading, "Timer", Timer)
     lines: list[str] = []
-    with compile_ahead.slow_set_up_notice(lines.append, after_s=_WAIT_S):
-        pass
+    with compile_ahead.SlowSetUpNotice(lines.append, after_s=_WAIT_S).during():
+        set_up = "done"  # a set-up that takes no time
+    assert set_up == "done"
     timers[0].join(_WAIT_S)  # a cancelled timer ends at once; one left running would not
     assert not timers[0].is_alive() and lines == []

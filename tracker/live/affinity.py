@@ -28,6 +28,14 @@ _active: list[LoopAffinity] = []  # the one pinned loop of the process, if any
 _lock = threading.Lock()
 
 
+def usable_processors() -> int:
+    """The processors this process may run on (its affinity, where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def _supported() -> bool:
     return hasattr(os, "sched_setaffinity") and _TASKS.is_dir()
 

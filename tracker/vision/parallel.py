@@ -43,6 +43,7 @@ import numpy as np
 
 from models.catheter import Catheter
 from models.imaging import Rig
+from tracker.live.affinity import usable_processors
 from tracker.live.collection import FrameCollection
 from tracker.live.priority import FramePriority
 from tracker.vision.pair import PairSegmentation, PairSegmenter, combine_views
@@ -84,10 +85,7 @@ def _report_stderr(message: str) -> None:
 
 def parallel_possible() -> bool:
     """Whether this process may use two processors or more (a worker then has one)."""
-    try:
-        return len(os.sched_getaffinity(0)) >= 2
-    except AttributeError:  # not Linux
-        return (os.cpu_count() or 1) >= 2
+    return usable_processors() >= 2
 
 
 class WorkerStopped(RuntimeError):
