@@ -7,8 +7,11 @@ more on calling its routines for arrays of a few elements than on the arithmetic
 :meth:`models.imaging.Rig.reconstruct` and :meth:`models.imaging.Rig.reconstruction_covariance`
 for cameras without distortion (the rig's own Notes give the formulas), one point at a time.
 :func:`distorted_pixel` is ``cv2.projectPoints`` for one point in a camera's frame, for the
-compiled steps that project (the epipolar check, single views' predictions). Compiled once
-on a machine and cached next to this file.
+compiled steps that project (the epipolar check, single views' predictions).
+:func:`to_base` moves points and covariances into a registered base frame, and
+:func:`observe_frame` is a whole usual live frame (checks, both steps above, the move to the
+base and the finite-difference velocity) in one call. Compiled once on a machine and cached
+next to this file.
 """
 
 from __future__ import annotations
@@ -162,6 +165,120 @@ def distorted_pixel(X, Y, Z, intrinsics, k):
     return xd * intrinsics[0] + intrinsics[2], yd * intrinsics[1] + intrinsics[3]
 
 
+@numba.njit(cache=True, nogil=True)
+def _point_to_base(x, c, R, o, point_out, cov_out):
+    """One point ``x`` (3,) and its covariance ``c`` (3, 3) in {W} into {B}: ``R^T (x - o)``
+    element by element (``d_x R[0] + d_y R[1] + d_z R[2]``, as
+    :meth:`models.pose.Pose.base_from_world`) and ``(R^T C) R`` with every sum in index order."""
+    d0, d1, d2 = x[0] - o[0], x[1] - o[1], x[2] - o[2]
+    for j in range(3):
+        point_out[j] = d0 * R[0, j] + d1 * R[1, j] + d2 * R[2, j]
+    A = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = R[0, i] * c[0, j] + R[1, i] * c[1, j] + R[2, i] * c[2, j]
+    for i in range(3):
+        for j in range(3):
+            cov_out[i, j] = A[i, 0] * R[0, j] + A[i, 1] * R[1, j] + A[i, 2] * R[2, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def to_base(points_w, cov_w, R_w_b, o_b_w):
+    """Points (N, 3) and covariances (N, 3, 3) in {W} -> {B} (rotation ``R_w_b``, origin
+    ``o_b_w``), point by point as :func:`observe_frame` does: the same numbers for a point
+    whatever else is in the batch."""
+    N = points_w.shape[0]
+    points_b = np.empty((N, 3))
+    covs_b = np.empty((N, 3, 3))
+    for n in range(N):
+        _point_to_base(points_w[n], cov_w[n], R_w_b, o_b_w, points_b[n], covs_b[n])
+    return points_b, covs_b
+
+
+FRAME_OK, FRAME_UNUSUAL = 0, 1
+""":func:`observe_frame`'s status: done, or a frame for the general path (which names what is
+wrong with it, if anything)."""
+
+
+@numba.njit(cache=True, nogil=True)
+def observe_frame(q, uv, cov, principal, focal, R_cam_w, t_cam_w, inverse_focal, R_w_b,
+                  o_b_w, tip_before, cov_before, dt):  # fmt: skip
+    """A usual frame's points in {B} and the tip's finite-difference velocity, in one call.
+
+    The arithmetic of :func:`triangulate`, :func:`propagate`, :func:`to_base` and
+    :func:`tracker.types.velocity_from_positions` (``(p - p_before) / dt``,
+    ``(S + S_before) / dt^2``, ``S / dt``), so the results are those of the batch path to the
+    bit. A frame that is not usual gets ``FRAME_UNUSUAL`` and no numbers: joint values or
+    image points not finite, a covariance not finite, not symmetric to 1e-9 of its view's
+    largest entry or not positive semi-definite with a margin of 1e-13 of it (ten times the
+    batch path's check's), a point at or behind a camera, or rays that are parallel.
+
+    Parameters
+    ----------
+    q : array (3,)
+    uv, cov : arrays (V, P, 2), (V, P, 2, 2)
+        The frame's points and their noise, view by view.
+    principal, focal, R_cam_w, t_cam_w, inverse_focal : the rig's camera arrays
+    R_w_b, o_b_w : arrays (3, 3), (3,)
+        The registered base.
+    tip_before, cov_before : arrays (3,), (3, 3)
+        The tip of the frame before, in {B}, and its covariance.
+    dt : float
+        The time since that frame, s; NaN: no velocity.
+
+    Returns
+    -------
+    status : int
+    points_b, covs_b : arrays (P, 3), (P, 3, 3)
+    velocity, velocity_cov, velocity_tip_cov : arrays (3,), (3, 3), (3, 3)
+    """
+    V, P = uv.shape[0], uv.shape[1]
+    points_b = np.empty((P, 3))
+    covs_b = np.empty((P, 3, 3))
+    velocity = np.empty(3)
+    velocity_cov = np.empty((3, 3))
+    cross = np.empty((3, 3))
+    nothing = (FRAME_UNUSUAL, points_b, covs_b, velocity, velocity_cov, cross)
+    for i in range(3):
+        if not np.isfinite(q[i]):
+            return nothing
+    uv_pv = np.empty((P, V, 2))
+    cov_pv = np.empty((P, V, 2, 2))
+    for v in range(V):
+        scale = 1e-300
+        for p in range(P):
+            for a in range(2):
+                if not np.isfinite(uv[v, p, a]):
+                    return nothing
+                uv_pv[p, v, a] = uv[v, p, a]
+                for b in range(2):
+                    e = cov[v, p, a, b]
+                    if not np.isfinite(e):
+                        return nothing
+                    scale = max(scale, abs(e))
+                    cov_pv[p, v, a, b] = e
+        for p in range(P):
+            a, b, c, d = cov[v, p, 0, 0], cov[v, p, 0, 1], cov[v, p, 1, 0], cov[v, p, 1, 1]
+            if abs(b - c) > 1e-9 * scale or (
+                0.5 * (a + d) - np.hypot(0.5 * (a - d), c) < -1e-13 * scale
+            ):
+                return nothing
+    points_w, parallel = triangulate(uv_pv, principal, focal, R_cam_w, t_cam_w)
+    cov_w, behind = propagate(points_w, cov_pv, R_cam_w, t_cam_w, inverse_focal)
+    for p in range(P):
+        if parallel[p] or behind[p]:
+            return nothing
+        _point_to_base(points_w[p], cov_w[p], R_w_b, o_b_w, points_b[p], covs_b[p])
+    if np.isfinite(dt):
+        dt2 = dt**2
+        for i in range(3):
+            velocity[i] = (points_b[0, i] - tip_before[i]) / dt
+            for j in range(3):
+                velocity_cov[i, j] = (covs_b[0, i, j] + cov_before[i, j]) / dt2
+                cross[i, j] = covs_b[0, i, j] / dt
+    return FRAME_OK, points_b, covs_b, velocity, velocity_cov, cross
+
+
 @functools.cache
 def warm_up() -> None:
     """Compile (or load from the cache) the kernels once per process, with the types the rig
@@ -176,8 +293,22 @@ def warm_up() -> None:
     t = frozen(np.array([[0.0, 0.0, 400.0], [0.0, 0.0, 400.0]]))
     pair = frozen(np.ones((2, 2)))
     points, _ = triangulate(np.zeros((1, 2, 2)), pair, pair, R, t)
-    propagate(np.zeros((1, 3)), np.ones((1, 2, 2, 2)), R, t,
-              frozen(np.broadcast_to(np.eye(2), (2, 2, 2)).copy()))  # fmt: skip
+    inverse_focal = frozen(np.broadcast_to(np.eye(2), (2, 2, 2)).copy())
+    propagate(np.zeros((1, 3)), np.ones((1, 2, 2, 2)), R, t, inverse_focal)
+    # The base pose's arrays are read-only too (models.pose.Pose).
+    R_w_b, o_b_w = frozen(np.eye(3)), frozen(np.zeros(3))
+    to_base(np.zeros((1, 3)), np.ones((1, 3, 3)), R_w_b, o_b_w)
+    observe_frame(np.zeros(3), np.zeros((2, 1, 2)), np.ones((2, 1, 2, 2)), pair, pair, R, t,
+                  inverse_focal, R_w_b, o_b_w, np.zeros(3), np.eye(3), 0.05)  # fmt: skip
 
 
-__all__ = ["distorted_pixel", "propagate", "triangulate", "warm_up"]
+__all__ = [
+    "FRAME_OK",
+    "FRAME_UNUSUAL",
+    "distorted_pixel",
+    "observe_frame",
+    "propagate",
+    "to_base",
+    "triangulate",
+    "warm_up",
+]

@@ -34,6 +34,9 @@ _IDENTITY = np.eye(3)
 _IDENTITY.flags.writeable = False
 # The frame before the first one: time, tip and its covariance as one-row arrays.
 _NO_PREVIOUS = (np.full(1, np.nan), np.full((1, 3), np.nan), _IDENTITY[None])
+# The tip before the first frame for the compiled step: its types as a real one's (writable).
+_NO_TIP = (np.full(3, np.nan), np.eye(3))
+_VELOCITY = ("velocity_b_mm_s", "velocity_cov_b", "velocity_tip_cov_b")
 
 
 @dataclass
@@ -95,11 +98,12 @@ class Reconstructor:
         values and covariances that are clearly fine; None for any other frame, with the
         state untouched, for :meth:`observe_batch` to handle (or name what is wrong).
 
-        The live loop's path, one frame at a time: each call to numpy costs cache misses
-        there, so the checks are on plain floats and a pinhole rig without distortion goes
-        straight to its compiled kernels. Every number is computed by the same operations,
-        in the same order and on arrays of the same shapes as on the batch path, so the
-        results are identical to the bit.
+        The live loop's path, one frame at a time, for a pinhole rig without distortion
+        (any other goes the batch way): each call to numpy costs cache misses there, so the
+        checks, triangulation, propagation, the move to {B} and the velocity are one compiled
+        call (:func:`models._imaging_kernels.observe_frame`). Every number is computed by the
+        same operations in the same order as on the batch path, so the results are
+        identical to the bit.
         """
         P, V = self.n_points, self.rig.n_views
         t = frame.time_s
@@ -113,57 +117,38 @@ class Reconstructor:
             return None
         if q.shape != (3,) or uv.shape != (V, P, 2) or cov.shape != (V, P, 2, 2):
             return None
-        finite = math.isfinite
-        if not all(map(finite, q.tolist())) or not all(map(finite, uv.ravel().tolist())):
-            return None
-        for entries in cov.reshape(V, 4 * P).tolist():
-            if not all(map(finite, entries)):
-                return None
-            # Rig.reconstruct_with_covariance's check, per view: symmetric to the same
-            # tolerance (the same float operations), and positive semi-definite with ten times
-            # its margin (math.hypot may differ from numpy's in the last bit).
-            scale = max(1e-300, max(map(abs, entries)))
-            for a, b, c, d in zip(*[iter(entries)] * 4, strict=True):
-                if abs(b - c) > 1e-9 * scale or (
-                    0.5 * (a + d) - math.hypot(0.5 * (a - d), c) < -1e-13 * scale
-                ):
-                    return None
-        # C-contiguous copies, as the batch path's: the kernels were compiled for those, and
-        # any other layout would compile (or load) another version on the first frame.
-        uv = np.ascontiguousarray(uv.swapaxes(0, 1))  # (P, V, 2)
-        cov = np.ascontiguousarray(cov.swapaxes(0, 1))  # (P, V, 2, 2)
-        cams = self.rig._cameras
-        if cams is not None and not cams.distorted:
-            # What Rig._triangulate and Rig._propagate call, without their re-checks. A point
-            # whose rays are parallel is NaN, which propagate flags as behind a camera too.
-            points_w, _ = _imaging_kernels.triangulate(
-                uv, cams.principal, cams.focal, cams.R_cam_w, cams.t_cam_w
-            )
-            cov_w, behind = _imaging_kernels.propagate(
-                points_w, cov, cams.R_cam_w, cams.t_cam_w, cams.inverse_focal
-            )
-            if any(behind.tolist()):
-                return None
-        else:
-            points_w = self.rig._triangulate(uv)
-            cov_w = self.rig._propagate(points_w, cov)
-        points_b = self.pose.base_from_world(points_w)
-        covs_b = self.pose.covariance_to_base(cov_w)
         q_dot = None if frame.q_dot is None else np.asarray(frame.q_dot, dtype=float)
         t = float(t)
-        velocity = {}
+        dt = math.nan  # no velocity
         previous = self._previous
         if previous is not None and q_dot is not None:
-            dt = t - float(previous[0][0])
-            if 0 < dt <= self.max_velocity_gap_s:
-                if dt == math.inf:
+            gap = t - float(previous[0][0])
+            if 0 < gap <= self.max_velocity_gap_s:
+                if gap == math.inf:
                     return None  # the batch path names the interval
-                v, cov_v, cross = velocity_from_positions(
+                dt = gap
+        cams = self.rig._cameras
+        if cams is not None and not cams.distorted:
+            # One compiled call: the checks, triangulation, propagation, the move to {B} and
+            # the velocity.
+            before, cov_before = _NO_TIP if previous is None else (previous[1][0], previous[2][0])
+            status, points_b, covs_b, *velocity = _imaging_kernels.observe_frame(
+                q, uv, cov, cams.principal, cams.focal, cams.R_cam_w, cams.t_cam_w,
+                cams.inverse_focal, self.R_w_b, self.o_b_w_mm, before, cov_before, dt,
+            )  # fmt: skip
+            if status != _imaging_kernels.FRAME_OK:
+                return None
+        else:
+            points_b, covs_b = self._other_rig(q, uv, cov)
+            if points_b is None:
+                return None
+            if dt == dt:
+                velocity = velocity_from_positions(
                     points_b[0], covs_b[0], previous[1][0], previous[2][0], dt
                 )
-                velocity = dict(
-                    velocity_b_mm_s=v, velocity_cov_b=cov_v, velocity_tip_cov_b=cross
-                )
+        extra = {}
+        if dt == dt:  # formed
+            extra = dict(zip(_VELOCITY, velocity, strict=True))
         self._previous = (np.array([t]), points_b[:1], covs_b[:1])
         return Observation(
             time_s=t,
@@ -173,8 +158,33 @@ class Reconstructor:
             tip_cov_b=covs_b[0],
             markers_b_mm=points_b[1:],
             markers_cov_b=covs_b[1:],
-            **velocity,
+            **extra,
         )
+
+    def _other_rig(self, q: Array, uv: Array, cov: Array) -> tuple[Array | None, Array | None]:
+        """:meth:`_observe_usual`'s points in {B} for a rig other than an undistorted pinhole
+        one (None, None for a frame that is not usual), with the rig's own steps."""
+        V, P = uv.shape[:2]
+        finite = math.isfinite
+        if not all(map(finite, q.tolist())) or not all(map(finite, uv.ravel().tolist())):
+            return None, None
+        for entries in cov.reshape(V, 4 * P).tolist():
+            if not all(map(finite, entries)):
+                return None, None
+            # Rig.reconstruct_with_covariance's check, per view: symmetric to the same
+            # tolerance (the same float operations), and positive semi-definite with ten times
+            # its margin (math.hypot may differ from numpy's in the last bit).
+            scale = max(1e-300, max(map(abs, entries)))
+            for a, b, c, d in zip(*[iter(entries)] * 4, strict=True):
+                if abs(b - c) > 1e-9 * scale or (
+                    0.5 * (a + d) - math.hypot(0.5 * (a - d), c) < -1e-13 * scale
+                ):
+                    return None, None
+        # C-contiguous copies, as the batch path's.
+        uv = np.ascontiguousarray(uv.swapaxes(0, 1))  # (P, V, 2)
+        cov = np.ascontiguousarray(cov.swapaxes(0, 1))  # (P, V, 2, 2)
+        points_w = self.rig._triangulate(uv)
+        return self._to_base(points_w, self.rig._propagate(points_w, cov))
 
     def observations(self, frames: Iterable[Frame]) -> Iterator[Observation]:
         for frame in frames:
@@ -245,8 +255,8 @@ class Reconstructor:
             points_w, cov_w = self.rig.reconstruct_with_covariance(
                 uv.reshape(-1, V, 2), cov.reshape(-1, V, 2, 2)
             )
-            points_b = self.pose.base_from_world(points_w).reshape(F, P, 3)
-            covs_b = self.pose.covariance_to_base(cov_w).reshape(F, P, 3, 3)
+            points_b, covs_b = self._to_base(points_w, cov_w)
+            points_b, covs_b = points_b.reshape(F, P, 3), covs_b.reshape(F, P, 3, 3)
             return points_b, covs_b, np.ones((F, P), dtype=bool), [()] * F
         found = np.isfinite(uv).all(-1) & np.isfinite(cov).all((-2, -1))  # (F, P, V)
         n_found = found.sum(axis=-1)
@@ -263,8 +273,7 @@ class Reconstructor:
             points_w, cov_w = self.rig.subset(views).reconstruct_with_covariance(
                 uv[group][:, views], cov[group][:, views]
             )
-            points_b[group] = self.pose.base_from_world(points_w)
-            covs_b[group] = self.pose.covariance_to_base(cov_w)
+            points_b[group], covs_b[group] = self._to_base(points_w, cov_w)
         single = found & (n_found == 1)[..., None]  # a point seen in one view only
         single_views = [
             tuple(
@@ -282,6 +291,14 @@ class Reconstructor:
             for i, has_single in enumerate(single.any(axis=1).tolist())
         ]
         return points_b, covs_b, seen, single_views
+
+    def _to_base(self, points_w: Array, cov_w: Array) -> tuple[Array, Array]:
+        """Points (N, 3) and covariances (N, 3, 3) in {W} -> {B}, one compiled call with the
+        arithmetic of :meth:`observe`'s (the pose's in another order of its sums)."""
+        return _imaging_kernels.to_base(
+            np.ascontiguousarray(points_w, dtype=float),
+            np.ascontiguousarray(cov_w, dtype=float), self.R_w_b, self.o_b_w_mm,
+        )  # fmt: skip
 
     def _velocities(
         self,

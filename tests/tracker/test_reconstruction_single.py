@@ -200,6 +200,38 @@ def test_bad_frames_raise_the_batch_errors_and_leave_the_state():
     assert raised == 8  # an infinite covariance makes a single-view point, None a NaN
 
 
+def test_a_point_behind_a_camera_or_on_the_baseline_gets_the_batch_error():
+    """The compiled single-frame step refuses what the rig refuses (a point at or behind a
+    camera, rays that are parallel): the batch path then raises its error, and the state is
+    left as it was."""
+    scene = _scene("pinhole")
+    trajectory = sinusoidal([0.3, 0.6, 0.4], [0.3, 0.1, 0.1], [3, 3, 3], 0.2)
+    good = simulate_frames(
+        scene, trajectory, 1.0, NoiseSettings(sigma=0.5), np.random.default_rng(3)
+    )
+    rig = scene.rig
+    centres = [-view.R_cam_w.T @ view.t_cam_w for view in rig.views]
+    P = good[0].uv[0].shape[0]
+    # Behind the first camera (twice as far from the origin, on its axis) and in front of
+    # the others; on the line through the two centres (its rays are that line).
+
+    def pixel(view, point):  # the pinhole's formula, whatever the sign of the depth
+        x = view.K @ (view.R_cam_w @ point + view.t_cam_w)
+        return x[:2] / x[2]
+
+    for point in (2.0 * centres[0], 0.5 * (centres[0] + centres[1])):
+        uv = tuple(np.tile(pixel(view, point), (P, 1)) for view in rig.views)
+        frame = dataclasses.replace(good[1], uv=uv)
+        new, reference = _pair(scene)
+        fallbacks = _counting(new)
+        _assert_identical(new.observe(good[0]), reference.observe_batch([good[0]])[0])
+        got, want = _outcome(new.observe, frame), _outcome(reference.observe_batch, [frame])
+        assert isinstance(want, ValueError), want
+        assert type(got) is type(want) and str(got) == str(want)
+        assert fallbacks == [1]  # the compiled step gave the frame to the batch path
+        _assert_identical(new.observe(good[1]), reference.observe_batch([good[1]])[0])
+
+
 def _outcome(function, argument):
     try:
         return function(argument)
@@ -219,13 +251,14 @@ from tracker.reconstruction import Reconstructor
 scene = _scene("pinhole")
 reconstructor = Reconstructor(scene.catheter, scene.rig, scene.R_w_b, scene.o_b_w_mm)
 frames, unusual = _frames(scene, 0)
-before = (len(K.triangulate.signatures), len(K.propagate.signatures))
+kernels = (K.triangulate, K.propagate, K.observe_frame, K.to_base)
+before = tuple(len(k.signatures) for k in kernels)
 batch = []
 reconstructor.observe_batch = lambda frames: batch.append(1) or [None]  # counted, not run
 observations = [reconstructor.observe(f) for i, f in enumerate(frames[:3]) if i not in unusual]
-after = (len(K.triangulate.signatures), len(K.propagate.signatures))
+after = tuple(len(k.signatures) for k in kernels)
 print(repr((before, after, len(observations), len(batch))))
 """
     before, after, n, batch = last_value(script)
-    assert n >= 2 and batch == 0 and before == (1, 1)
+    assert n >= 2 and batch == 0 and before == (1, 1, 1, 1)
     assert after == before

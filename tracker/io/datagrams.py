@@ -261,14 +261,15 @@ class SegmentedMarkers:
     cov: tuple[Array, ...]  # per view (P, 2, 2)
     sequence: int = 0
 
-    def frame(self, q: Array, q_dot: Array | None) -> Frame:
-        """The pipeline frame with these joint values."""
+    def frame(self, q: Array, q_dot: Array | None, images=None) -> Frame:
+        """The pipeline frame with these joint values (and the images, if given)."""
         return Frame(
             time_s=float(self.time_s),
             q=np.asarray(q, dtype=float),
             q_dot=None if q_dot is None else np.asarray(q_dot, dtype=float),
             uv=self.uv,
             cov=self.cov,
+            images=None if images is None else tuple(images),
         )
 
 

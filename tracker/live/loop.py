@@ -524,9 +524,7 @@ class LiveTracker:
                 self.stages["segmentation"].add(segmented_s - now)
             q, q_dot, status = joints[0] if joints else self._joints_at(time_s, frame)
             if frame is None:
-                frame = markers.frame(q, q_dot)
-                if is_images:
-                    frame = dataclasses.replace(frame, images=tuple(item[1]))
+                frame = markers.frame(q, q_dot, item[1] if is_images else None)
             elif self.joints is not None:
                 frame = dataclasses.replace(frame, q=q, q_dot=q_dot)
             if status & PREDICT_ONLY:
@@ -563,10 +561,11 @@ class LiveTracker:
         self.stages["estimator"].add(self.monotonic() - observed_s)
         s.frames_processed += 1
         s.frames_valid += int(estimate.valid)
-        s.frames_stale_joints += int(bool(status & LiveStatus.STALE_JOINTS))
-        s.frames_no_joints += int(bool(status & LiveStatus.NO_JOINTS))
-        s.frames_clamped_joints += int(bool(status & LiveStatus.JOINTS_CLAMPED))
-        s.frames_extrapolated_joints += int(bool(status & LiveStatus.JOINTS_EXTRAPOLATED))
+        if status:  # (a flag's test costs a microsecond: not for the usual frame)
+            s.frames_stale_joints += int(bool(status & LiveStatus.STALE_JOINTS))
+            s.frames_no_joints += int(bool(status & LiveStatus.NO_JOINTS))
+            s.frames_clamped_joints += int(bool(status & LiveStatus.JOINTS_CLAMPED))
+            s.frames_extrapolated_joints += int(bool(status & LiveStatus.JOINTS_EXTRAPOLATED))
         # The first sink's datagram carries the latency so far; the latency is until it is sent.
         sinks, result = self._sinks, (frame, observation, estimate)
         self._dispatch(sinks[:1], *result, self.monotonic() - reference, status)
