@@ -316,6 +316,14 @@ class SimulatedCameras:
         self._process.start()
 
     @property
+    def period_s(self) -> float | None:
+        """The cameras' frame period (the median interval between exposures), s; None for
+        fewer than two pairs. The live loop primes for the second pair with it."""
+        if self.times_s.size < 2:
+            return None
+        return float(np.median(np.diff(self.times_s)))
+
+    @property
     def rendered(self) -> int:
         """Pairs rendered so far."""
         return int(self._progress[0])

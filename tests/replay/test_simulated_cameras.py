@@ -82,6 +82,8 @@ def test_pairs_come_in_order_bit_for_bit_at_their_exposures(scene, max_ahead):
                 np.testing.assert_array_equal(image, want)
         assert min(released_late_s) >= 0.0  # never before its exposure
         assert cameras.truth(got[3].time_s) == float(frames[3].delta_L_true_rad)
+        # Their period, for the loop's pace before it has seen two pairs.
+        assert cameras.period_s == pytest.approx(np.median(np.diff([p.time_s for p in got])))
     finally:
         cameras.close()
 

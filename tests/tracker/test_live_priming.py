@@ -993,3 +993,58 @@ def test_a_rehearsal_of_the_steps_that_fails_is_said_once_and_left_out(session):
         assert (a.estimate.delta_L_rad, a.estimate.std_rad) == (
             b.estimate.delta_L_rad, b.estimate.std_rad
         )
+
+
+def test_a_nominal_period_gives_the_second_frame_a_due_time_until_intervals_are_seen():
+    """A source's own period (``period_s``) stands for the pace before two frames have
+    been seen, so that the loop can prime for the second; from the first interval on, the
+    frames' own intervals rule, and an unusable nominal period is ignored."""
+    pace = FramePace(window=5, nominal_period_s=0.04)
+    assert pace.period_s == pytest.approx(0.04) and pace.due_s() == math.inf  # no frame yet
+    pace.add(1.00, 10.0)
+    assert pace.next_time_s == pytest.approx(1.04) and pace.due_s() == pytest.approx(10.04)
+    pace.add(1.05, 10.05)  # the stream's own period
+    assert pace.period_s == pytest.approx(0.05) and pace.due_s() == pytest.approx(10.10)
+    for nominal in (0.0, -0.05, math.nan, math.inf):
+        assert FramePace(nominal_period_s=nominal).period_s is None
+
+
+def test_the_loop_primes_for_the_second_frame_of_a_source_with_a_period(session, joints):
+    """With the source's ``period_s`` the loop primes before the second frame (the joints
+    sampled and the region predicted then); without it, not before the third."""
+    primed_before = {}
+    for period_s in (None, 0.05):
+        tracker = loop_of(session, joints, StandInSegmenter(session.frames), MemorySink())
+        tracker.pace.nominal_period_s = period_s
+        primed = []
+        for k in range(3):
+            now = 100.0 + 0.05 * k  # the frames leave the source at 20 fps on this clock
+            if k:
+                primed.append(tracker.prime(now - 0.0005))  # just before the frame is due
+            step(tracker, session, joints, k, received_s=now)
+        primed_before[period_s] = primed
+    assert primed_before[0.05] == [True, True]
+    assert primed_before[None] == [False, True]
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_a_run_takes_the_source_s_period_for_its_pace(session, joints, live):
+    """``run`` gives the pace the source's ``period_s`` (a live source's through its capture
+    thread), and None for a source without one."""
+
+    class Periodic:
+        period_s = 0.04
+
+        def __init__(self):
+            self.live = live
+
+        def __iter__(self):
+            return iter(())
+
+    tracker = loop_of(session, joints, StandInSegmenter(session.frames), MemorySink())
+    tracker.run(Periodic(), handle_signals=False)
+    assert tracker.pace.nominal_period_s == 0.04
+    tracker = loop_of(session, joints, StandInSegmenter(session.frames), MemorySink())
+    tracker.pace.nominal_period_s = 0.04
+    tracker.run(iter(()), handle_signals=False)
+    assert tracker.pace.nominal_period_s is None

@@ -852,3 +852,32 @@ def test_a_prepared_expansion_is_taken_once_and_only_for_exactly_its_joints():
     assert prepared._prepared is held
     prepared.prepare(np.array([0.3, np.nan, 0.1]))  # not finite: nothing, the last dropped
     assert prepared._prepared is None
+
+
+def test_a_new_filter_has_every_frame_kinds_update_rules_ready():
+    """The update's rules and gate tables of every kind of frame the catheter's points make
+    (3-D with and without a velocity, points missing, points in one view only) are worked
+    out when the filter is made: none is left to a frame (the live loop's first frame paid
+    about 1 ms for them, scipy's quantiles)."""
+    from replay.simulation.simulator import NoiseSettings, Scene, simulate_frames, sinusoidal
+    from tracker.estimators import ukf_core
+    from tracker.reconstruction import Reconstructor
+
+    catheter, rig = default_catheter(), default_pinhole_rig(400.0, 2500.0)
+    scene = Scene(catheter, rig, np.eye(3), np.array([0.0, 0.0, -15.0]))
+    trajectory = sinusoidal([0.3, 0.6, 0.4], [0.3, 0.1, 0.1], [3, 3, 3], 3.0)
+    noise = NoiseSettings(sigma=0.5, dropout_probability=0.2)
+    frames = simulate_frames(scene, trajectory, 1.0, noise, np.random.default_rng(4))
+    observations = Reconstructor(catheter, rig, np.eye(3), scene.o_b_w_mm).observe_batch(frames)
+    estimator = BendingPlaneUKF(catheter)
+    bank = estimator._bank
+    made = set(bank._rules)
+    misses = ukf_core._gate_table.cache_info().misses
+    kinds = set()
+    for observation in observations:
+        estimator.step(observation)
+        kinds.add((observation.tip_b_mm is not None and np.isfinite(observation.tip_b_mm).all(),
+                   observation.velocity_b_mm_s is not None, bool(observation.views)))  # fmt: skip
+    assert len(kinds) >= 4  # every kind of frame came
+    assert set(bank._rules) == made
+    assert ukf_core._gate_table.cache_info().misses == misses

@@ -372,6 +372,7 @@ class BendingPlaneUKF(Estimator):
         self.settings = UKFSettings() if settings is None else settings
         self.name = name
         self._bank = FilterBank(self.settings, 1)
+        self._bank.prepare_rules(1 + len(catheter.marker_arclengths_mm))
         self._expansion = ShapeExpansion(catheter)
 
     # ------------------------------------------------------------------ public interface

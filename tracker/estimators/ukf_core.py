@@ -421,6 +421,20 @@ class FilterBank:
         out.rejected = self.rejected.copy()
         return out
 
+    def prepare_rules(self, n_points: int, n_views: int = 2) -> None:
+        """Work out now the update's rules and gate tables of every frame that ``n_points``
+        points (the tip and the markers) seen in ``n_views`` views can make: 3-D frames of
+        those points with and without a velocity, and single-view frames of up to all of
+        them in every view. Otherwise the first frame of each kind pays for them (their
+        quantiles come from scipy, whose first call alone took about 1 ms): the live loop's
+        first frame did."""
+        p = self.settings.gate_probability
+        groups = [(G, 3) for G in range(1, n_points + 2)]
+        groups += [(G, 2) for G in range(1, n_points * n_views + 1)]
+        for G, d in groups:
+            self._update_rules(G, d)
+            _gate_table(p, G * d)
+
     def _update_rules(self, G: int, d: int) -> tuple:
         """The update's rules for G groups of dimension d: outlier probability and scale,
         the outlier and doubt thresholds, the joint gates, the least information of an

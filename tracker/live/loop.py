@@ -649,6 +649,7 @@ class LiveTracker:
         self._capture = source if isinstance(source, NewestOnly) else None
         self.time_is_monotonic = bool(getattr(source, "time_is_monotonic", False))
         self._speed = getattr(source, "speed", 1.0)  # a played-back stream's pace
+        self.pace.nominal_period_s = getattr(getattr(source, "source", source), "period_s", None)
         if self.summary.markers is None and getattr(source, "counts", None) is not None:
             self.summary.markers = source.counts
         stop = StopRequest()

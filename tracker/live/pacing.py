@@ -23,12 +23,17 @@ class FramePace:
     ----------
     window : int
         Intervals kept; the period is their median.
+    nominal_period_s : float, optional
+        The period the source says it keeps (its ``period_s``, e.g. the simulated cameras'),
+        taken until a first interval has been seen: the loop can then prime for the second
+        frame too. None: no period before two frames.
     """
 
-    def __init__(self, window: int = 5) -> None:
+    def __init__(self, window: int = 5, nominal_period_s: float | None = None) -> None:
         self._intervals_s: collections.deque[float] = collections.deque(maxlen=int(window))
         self._last_time_s: float | None = None
         self._last_received_s: float | None = None
+        self.nominal_period_s = nominal_period_s
 
     def add(self, time_s: float, received_s: float) -> None:
         """A frame admitted: its stream time and when it left the source (local clock), s."""
@@ -43,9 +48,12 @@ class FramePace:
 
     @property
     def period_s(self) -> float | None:
-        """Median of the last intervals between frames (stream time), s; None before two."""
+        """Median of the last intervals between frames (stream time), s; before two frames,
+        the nominal period if one was given (a positive, finite one), else None."""
         if not self._intervals_s:
-            return None
+            nominal = self.nominal_period_s
+            ok = nominal is not None and 0.0 < nominal < math.inf
+            return float(nominal) if ok else None
         ordered = sorted(self._intervals_s)
         return ordered[len(ordered) // 2]
 

@@ -18,6 +18,9 @@ file played at its frame rate, simulated cameras), sets ``live = True``: the loo
 in its own capture thread (:class:`NewestOnly`) and always takes the newest item, dropping
 (and counting) the ones a newer item replaced before the loop was free. Sources without it
 (recordings, simulations, markers over UDP) have every item processed, in order.
+A source that knows its frame period (the simulated cameras) may give it as ``period_s``,
+s: the loop then primes for its second frame too, where it would otherwise wait for two
+frames to measure the period (:class:`~tracker.live.pacing.FramePace`).
 
 Sources here: two cameras or video files through OpenCV (:class:`VideoSource`), segmented
 markers over UDP (:class:`UdpMarkerSource`), the frames of a recording
